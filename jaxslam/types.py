@@ -1,0 +1,293 @@
+"""Types shared by the whole library: static config, dynamic params, filter state, observations.
+
+Dimension glossary (used in every docstring of the package):
+
+    P   particles                     (``FilterConfig.num_particles``)
+    M   landmark slots per particle   (``FilterConfig.max_landmarks``)
+    K   padded observations per step  (``FilterConfig.max_obs``)
+    B   lidar beams per scan
+    T   time steps
+    R   independent Monte Carlo runs
+    N   true trees in a simulated forest
+    C   motion control vector length (3 for every built-in motion model)
+
+Conventions: poses are ``(x, y, theta)`` in metres and radians, theta wrapped to [-pi, pi);
+observations are ``(range, bearing)`` in the robot frame; landmark covariances are stored as
+their three distinct components ``(sxx, sxy, syy)`` in a trailing axis of size 3 so that the hot
+code can do closed-form 2x2 arithmetic (DESIGN.md performance rules); ``estimate`` expands them.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+MOTION_MODELS = ("odometry", "velocity", "ackermann")
+ASSOCIATIONS = ("stable", "greedy", "hungarian", "known")
+PROPOSALS = ("motion", "observation", "mixture")
+RESAMPLINGS = ("systematic", "stratified", "multinomial", "residual")
+BOUNDARIES = ("hard", "loose")
+MIXTURE_MODES = ("fixed", "adaptive")
+
+
+def _check_choice(name: str, value: str, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        raise ValueError(
+            f"FilterConfig.{name}={value!r} is not supported; expected one of {list(allowed)}"
+        )
+
+
+def _check_positive_int(name: str, value) -> None:
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
+        raise ValueError(
+            f"FilterConfig.{name}={value!r} is invalid; expected a positive integer (>= 1)"
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class FilterConfig:
+    """Static filter settings: everything that fixes array shapes or code paths.
+
+    Changing a field recompiles; sweeps over numbers belong in ``Params`` instead.
+
+    Attributes:
+      num_particles: P, particles per run.
+      max_landmarks: M, landmark slots per particle.
+      max_obs: K, padded observations per step.
+      motion_model: one of ``MOTION_MODELS``; fixes the meaning of the (3,) control vector.
+      association: one of ``ASSOCIATIONS``.
+      proposal: one of ``PROPOSALS``.
+      mixture_mode: ``fixed`` ratio phi or ``adaptive`` (only used by the mixture proposal).
+      resampling: one of ``RESAMPLINGS``.
+      boundary: ``hard`` visibility limit or ``loose`` airlock (seed 000 section 3.1).
+      max_match_rounds: bound on Gale-Shapley rounds; 0 means K + M. Each round every free
+        observation proposes to its next landmark, so K*M rounds always suffice; K + M is
+        enough in practice and the rounds actually used are reported in ``info``.
+    """
+
+    num_particles: int = 100
+    max_landmarks: int = 64
+    max_obs: int = 16
+    motion_model: str = "odometry"
+    association: str = "stable"
+    proposal: str = "motion"
+    mixture_mode: str = "fixed"
+    resampling: str = "systematic"
+    boundary: str = "loose"
+    max_match_rounds: int = 0
+
+    def __post_init__(self):
+        for name in ("num_particles", "max_landmarks", "max_obs"):
+            _check_positive_int(name, getattr(self, name))
+        if (not isinstance(self.max_match_rounds, (int, np.integer))
+                or self.max_match_rounds < 0):
+            raise ValueError(
+                f"FilterConfig.max_match_rounds={self.max_match_rounds!r} is invalid; "
+                "expected an integer >= 0 (0 means max_obs + max_landmarks)"
+            )
+        _check_choice("motion_model", self.motion_model, MOTION_MODELS)
+        _check_choice("association", self.association, ASSOCIATIONS)
+        _check_choice("proposal", self.proposal, PROPOSALS)
+        _check_choice("mixture_mode", self.mixture_mode, MIXTURE_MODES)
+        _check_choice("resampling", self.resampling, RESAMPLINGS)
+        _check_choice("boundary", self.boundary, BOUNDARIES)
+
+    @property
+    def match_rounds(self) -> int:
+        """The bound actually used for the Gale-Shapley loop."""
+        return self.max_match_rounds or (self.max_obs + self.max_landmarks)
+
+
+class Params(NamedTuple):
+    """Dynamic filter parameters: a pytree of float arrays (scalars unless noted).
+
+    A sweep over any field is a ``vmap`` over a stacked ``Params`` and compiles once.
+
+    Motion noise, seed 000 Eq. (1): each std is ``c_trans*|trans| + c_rot*|rot| + c_const``.
+      rot1_noise: (3,) coefficients (trans, rot, const) of the first rotation's std
+        [rad/m, rad/rad, rad]. Table 1 row 1.
+      trans_noise: (3,) coefficients of the translation std [m/m, m/rad, m]; its rotation term
+        multiplies |rot1| + |rot2|. Table 1 row 2.
+      rot2_noise: (3,) coefficients of the second rotation's std. Table 1 row 3.
+      min_translation: below this translation [m] the move is a pure turn: rot1 = 0 and the
+        whole heading change goes to rot2 (avoids the rot1 degeneracy of a stationary robot).
+      velocity_noise: (3,) std of (v [m/s], omega [rad/s], final heading rate [rad/s]) per unit
+        speed for the velocity / Ackermann models: std_v = velocity_noise[0]*|v| + ...; see
+        ``motion.py``.
+    Observation noise, seed 000 Table 2: std = c_dist * range + c_const.
+      range_noise: (2,) (per metre of distance, constant) [m/m, m].
+      bearing_noise: (2,) (per metre of distance, constant) [rad/m, rad].
+      range_std_floor / bearing_std_floor: lower bounds on the two stds. Table 2's constants
+        are zero, so without a floor the covariance is singular at distance 0.
+    Sensor:
+      max_range / min_range: visibility limits [m].
+    Association and map management:
+      association_gate: squared Mahalanobis distance above which a pair is never formed
+        (chi-square 2 dof; 9.21 is the 99% quantile).
+      new_landmark_log_likelihood: log-likelihood credited to an observation that starts a new
+        landmark (the density of a tree appearing at a random place in view).
+      detection_probability / false_alarm_probability: for existence log-odds updates.
+      existence_init / existence_delete: log-odds at birth and the deletion threshold.
+      airlock_sigmas: the airlock width in standard deviations of the range; defaults to
+        sqrt(association_gate) (seed 000 section 3.1: "based on the correspondence
+        threshold").
+    Resampling:
+      ess_threshold: resample when ESS < ess_threshold * P.
+    Mixture proposal (seed 000 section 5.2):
+      mixture_ratio: phi, the probability of drawing a particle from the observation proposal.
+      mixture_min / mixture_max: bounds of the adaptive phi.
+      likelihood_rate_fast / likelihood_rate_slow: smoothing rates of the short- and long-term
+        average observation likelihood that drive the adaptive phi.
+    """
+
+    rot1_noise: jnp.ndarray
+    trans_noise: jnp.ndarray
+    rot2_noise: jnp.ndarray
+    min_translation: jnp.ndarray
+    velocity_noise: jnp.ndarray
+    range_noise: jnp.ndarray
+    bearing_noise: jnp.ndarray
+    range_std_floor: jnp.ndarray
+    bearing_std_floor: jnp.ndarray
+    max_range: jnp.ndarray
+    min_range: jnp.ndarray
+    association_gate: jnp.ndarray
+    new_landmark_log_likelihood: jnp.ndarray
+    detection_probability: jnp.ndarray
+    false_alarm_probability: jnp.ndarray
+    existence_init: jnp.ndarray
+    existence_delete: jnp.ndarray
+    airlock_sigmas: jnp.ndarray
+    ess_threshold: jnp.ndarray
+    mixture_ratio: jnp.ndarray
+    mixture_min: jnp.ndarray
+    mixture_max: jnp.ndarray
+    likelihood_rate_fast: jnp.ndarray
+    likelihood_rate_slow: jnp.ndarray
+
+
+def default_params(config: FilterConfig | None = None, dtype=jnp.float32, **overrides) -> Params:
+    """Seed 000 Tables 1 and 2 and sensible defaults for a 20 m forestry lidar.
+
+    Args:
+      config: the filter config (unused today; kept so defaults may depend on it).
+      dtype: float dtype of every leaf.
+      **overrides: any ``Params`` field, e.g. ``max_range=30.0``.
+    """
+    del config
+    gate = 9.21
+    values = dict(
+        rot1_noise=(0.0, 0.06, 0.0002),
+        trans_noise=(0.02, 0.006, 0.00003),
+        rot2_noise=(0.0, 0.06, 0.0003),
+        min_translation=1e-3,
+        velocity_noise=(0.05, 0.05, 0.001),
+        range_noise=(0.005, 0.0),
+        bearing_noise=(0.0005, 0.0),
+        range_std_floor=0.01,
+        bearing_std_floor=0.001,
+        max_range=20.0,
+        min_range=0.1,
+        association_gate=gate,
+        new_landmark_log_likelihood=-4.0,
+        detection_probability=0.9,
+        false_alarm_probability=0.05,
+        existence_init=1.0,
+        existence_delete=-1.5,
+        airlock_sigmas=float(np.sqrt(gate)),
+        ess_threshold=0.5,
+        mixture_ratio=0.3,
+        mixture_min=0.05,
+        mixture_max=0.9,
+        likelihood_rate_fast=0.5,
+        likelihood_rate_slow=0.05,
+    )
+    unknown = set(overrides) - set(values)
+    if unknown:
+        raise ValueError(
+            f"default_params got unknown field(s) {sorted(unknown)}; "
+            f"expected fields of Params: {sorted(values)}"
+        )
+    values.update(overrides)
+    return Params(**{k: jnp.asarray(v, dtype=dtype) for k, v in values.items()})
+
+
+class FilterState(NamedTuple):
+    """The particle set of ONE run.
+
+    Attributes:
+      pose: (P, 3) particle poses (x, y, theta).
+      log_weight: (P,) normalised log-weights (logsumexp == 0).
+      landmark_mean: (P, M, 2) landmark positions in the world frame.
+      landmark_cov: (P, M, 3) landmark covariance components (sxx, sxy, syy).
+      landmark_radius: (P, M) trunk radius estimate (running mean; 0 when never measured).
+      landmark_id: (P, M) int32 true-tree id for ``association="known"``; -1 otherwise.
+      active: (P, M) bool slot occupancy.
+      existence: (P, M) existence log-odds of each landmark.
+      likelihood_fast / likelihood_slow: () short/long-term average observation likelihood
+        (adaptive mixture ratio).
+      step: () int32 steps taken.
+    Inactive slots hold finite values (zero mean, identity covariance) and are masked.
+    """
+
+    pose: jnp.ndarray
+    log_weight: jnp.ndarray
+    landmark_mean: jnp.ndarray
+    landmark_cov: jnp.ndarray
+    landmark_radius: jnp.ndarray
+    landmark_id: jnp.ndarray
+    active: jnp.ndarray
+    existence: jnp.ndarray
+    likelihood_fast: jnp.ndarray
+    likelihood_slow: jnp.ndarray
+    step: jnp.ndarray
+
+
+class Observations(NamedTuple):
+    """Padded range-bearing observations of ONE step (add leading axes for T or R).
+
+    Attributes:
+      z: (K, 2) range [m] and bearing [rad] in the robot frame.
+      valid: (K,) bool; padded rows are False and ignored.
+      radius: (K,) trunk radius [m] (0 when unknown).
+      landmark_id: (K,) int32 true-tree id (simulation truth, for ``association="known"``);
+        -1 when unknown.
+    """
+
+    z: jnp.ndarray
+    valid: jnp.ndarray
+    radius: jnp.ndarray
+    landmark_id: jnp.ndarray
+
+
+def make_observations(z, valid=None, radius=None, landmark_id=None) -> Observations:
+    """Build ``Observations`` with defaults for the optional fields.
+
+    Args:
+      z: (..., K, 2) range and bearing.
+      valid: (..., K) bool, default all True.
+      radius: (..., K) default zeros.
+      landmark_id: (..., K) int, default -1.
+    """
+    z = jnp.asarray(z)
+    if z.ndim < 2 or z.shape[-1] != 2:
+        raise ValueError(f"observations z must have shape (..., K, 2); got {z.shape}")
+    batch = z.shape[:-1]
+    valid = jnp.ones(batch, bool) if valid is None else jnp.asarray(valid, bool)
+    radius = jnp.zeros(batch, z.dtype) if radius is None else jnp.asarray(radius, z.dtype)
+    landmark_id = (jnp.full(batch, -1, jnp.int32) if landmark_id is None
+                   else jnp.asarray(landmark_id, jnp.int32))
+    for name, arr in (("valid", valid), ("radius", radius), ("landmark_id", landmark_id)):
+        if arr.shape != batch:
+            raise ValueError(
+                f"observations {name} must have shape {batch} to match z {z.shape}; "
+                f"got {arr.shape}"
+            )
+    return Observations(z=z, valid=valid, radius=radius, landmark_id=landmark_id)
+
+
+def empty_observations(max_obs: int, dtype=jnp.float32) -> Observations:
+    """K padded, all-invalid observations (a step where nothing is seen)."""
+    return make_observations(jnp.zeros((max_obs, 2), dtype), valid=jnp.zeros(max_obs, bool))
