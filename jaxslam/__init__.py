@@ -2,6 +2,7 @@
 from jaxslam.types import (
     FilterConfig,
     FilterState,
+    Particles,
     Observations,
     Params,
     default_params,

@@ -113,9 +113,10 @@ class Params(NamedTuple):
       rot2_noise: (3,) coefficients of the second rotation's std. Table 1 row 3.
       min_translation: below this translation [m] the move is a pure turn: rot1 = 0 and the
         whole heading change goes to rot2 (avoids the rot1 degeneracy of a stationary robot).
-      velocity_noise: (3,) std of (v [m/s], omega [rad/s], final heading rate [rad/s]) per unit
-        speed for the velocity / Ackermann models: std_v = velocity_noise[0]*|v| + ...; see
-        ``motion.py``.
+      The velocity and Ackermann models integrate their control into the same
+      (rot1, trans, rot2) move and reuse these coefficients (see ``motion.py``).
+      wheelbase / encoder_offset / laser_forward / laser_left: Ackermann vehicle geometry [m]
+        (Victoria Park defaults L=2.83, H=0.76, a=3.78, b=0.50); the pose is the laser's.
     Observation noise, seed 000 Table 2: std = c_dist * range + c_const.
       range_noise: (2,) (per metre of distance, constant) [m/m, m].
       bearing_noise: (2,) (per metre of distance, constant) [rad/m, rad].
@@ -126,10 +127,14 @@ class Params(NamedTuple):
     Association and map management:
       association_gate: squared Mahalanobis distance above which a pair is never formed
         (chi-square 2 dof; 9.21 is the 99% quantile).
-      new_landmark_log_likelihood: log-likelihood credited to an observation that starts a new
-        landmark (the density of a tree appearing at a random place in view).
+      new_landmark_log_offset: an observation that no landmark explains (it starts a new
+        landmark, or it is set aside in the airlock) is credited the log-likelihood of a match
+        exactly at the gate under its own measurement noise, plus this offset. Every valid
+        observation thus adds exactly one term to every particle's weight.
       detection_probability / false_alarm_probability: for existence log-odds updates.
       existence_init / existence_delete: log-odds at birth and the deletion threshold.
+      existence_max: log-odds are clipped to [-existence_max, existence_max] so a long-seen
+        landmark can still be deleted after a few misses.
       airlock_sigmas: the airlock width in standard deviations of the range; defaults to
         sqrt(association_gate) (seed 000 section 3.1: "based on the correspondence
         threshold").
@@ -146,7 +151,10 @@ class Params(NamedTuple):
     trans_noise: jnp.ndarray
     rot2_noise: jnp.ndarray
     min_translation: jnp.ndarray
-    velocity_noise: jnp.ndarray
+    wheelbase: jnp.ndarray
+    encoder_offset: jnp.ndarray
+    laser_forward: jnp.ndarray
+    laser_left: jnp.ndarray
     range_noise: jnp.ndarray
     bearing_noise: jnp.ndarray
     range_std_floor: jnp.ndarray
@@ -154,11 +162,12 @@ class Params(NamedTuple):
     max_range: jnp.ndarray
     min_range: jnp.ndarray
     association_gate: jnp.ndarray
-    new_landmark_log_likelihood: jnp.ndarray
+    new_landmark_log_offset: jnp.ndarray
     detection_probability: jnp.ndarray
     false_alarm_probability: jnp.ndarray
     existence_init: jnp.ndarray
     existence_delete: jnp.ndarray
+    existence_max: jnp.ndarray
     airlock_sigmas: jnp.ndarray
     ess_threshold: jnp.ndarray
     mixture_ratio: jnp.ndarray
@@ -183,7 +192,10 @@ def default_params(config: FilterConfig | None = None, dtype=jnp.float32, **over
         trans_noise=(0.02, 0.006, 0.00003),
         rot2_noise=(0.0, 0.06, 0.0003),
         min_translation=1e-3,
-        velocity_noise=(0.05, 0.05, 0.001),
+        wheelbase=2.83,
+        encoder_offset=0.76,
+        laser_forward=3.78,
+        laser_left=0.50,
         range_noise=(0.005, 0.0),
         bearing_noise=(0.0005, 0.0),
         range_std_floor=0.01,
@@ -191,11 +203,12 @@ def default_params(config: FilterConfig | None = None, dtype=jnp.float32, **over
         max_range=20.0,
         min_range=0.1,
         association_gate=gate,
-        new_landmark_log_likelihood=-4.0,
+        new_landmark_log_offset=0.0,
         detection_probability=0.9,
         false_alarm_probability=0.05,
         existence_init=1.0,
         existence_delete=-1.5,
+        existence_max=6.0,
         airlock_sigmas=float(np.sqrt(gate)),
         ess_threshold=0.5,
         mixture_ratio=0.3,
@@ -214,32 +227,44 @@ def default_params(config: FilterConfig | None = None, dtype=jnp.float32, **over
     return Params(**{k: jnp.asarray(v, dtype=dtype) for k, v in values.items()})
 
 
-class FilterState(NamedTuple):
-    """The particle set of ONE run.
+class Particles(NamedTuple):
+    """Per-particle fields; every leaf has leading axis P, so resampling is one tree map.
 
     Attributes:
       pose: (P, 3) particle poses (x, y, theta).
-      log_weight: (P,) normalised log-weights (logsumexp == 0).
       landmark_mean: (P, M, 2) landmark positions in the world frame.
       landmark_cov: (P, M, 3) landmark covariance components (sxx, sxy, syy).
       landmark_radius: (P, M) trunk radius estimate (running mean; 0 when never measured).
-      landmark_id: (P, M) int32 true-tree id for ``association="known"``; -1 otherwise.
+      landmark_id: (P, M) int32 true-tree id (``association="known"``); -1 when unknown.
       active: (P, M) bool slot occupancy.
       existence: (P, M) existence log-odds of each landmark.
-      likelihood_fast / likelihood_slow: () short/long-term average observation likelihood
-        (adaptive mixture ratio).
-      step: () int32 steps taken.
+      observation_count: (P, M) int32 number of updates since birth (1 at birth).
     Inactive slots hold finite values (zero mean, identity covariance) and are masked.
     """
 
     pose: jnp.ndarray
-    log_weight: jnp.ndarray
     landmark_mean: jnp.ndarray
     landmark_cov: jnp.ndarray
     landmark_radius: jnp.ndarray
     landmark_id: jnp.ndarray
     active: jnp.ndarray
     existence: jnp.ndarray
+    observation_count: jnp.ndarray
+
+
+class FilterState(NamedTuple):
+    """The filter state of ONE run.
+
+    Attributes:
+      particles: ``Particles`` with leading axis P.
+      log_weight: (P,) normalised log-weights (logsumexp == 0).
+      likelihood_fast / likelihood_slow: () short- and long-term running averages of the mean
+        per-observation log-likelihood (drive the adaptive mixture ratio).
+      step: () int32 steps taken.
+    """
+
+    particles: Particles
+    log_weight: jnp.ndarray
     likelihood_fast: jnp.ndarray
     likelihood_slow: jnp.ndarray
     step: jnp.ndarray

@@ -1,0 +1,481 @@
+"""FastSLAM: ``make_filter(config) -> Filter(init, step)``, ``run_filter`` and ``estimate``.
+
+One step (seed 000; Montemerlo et al. 2002), for every particle i in parallel:
+
+1. propose a pose x_t^i (motion model, observation proposal or their mixture, ``proposal.py``);
+2. predict every landmark's measurement, the squared Mahalanobis distance d2[k, m] of every
+   observation to it, and apply the visibility boundary (hard or loose airlock);
+3. associate observations to landmarks (stable matching, greedy, optimal or known ids);
+4. EKF-update matched landmarks; weight w_i *= prod_k p(z_k | x_t^i, m) where matched
+   observations use N(nu; 0, S) and unexplained ones a constant (``ekf.py``);
+5. evidence: matched landmarks gain, visible unmatched ones lose; delete below threshold;
+   unexplained observations outside the airlock create landmarks in free slots;
+6. normalise weights; resample when ESS < ess_threshold * P.
+
+Observations are cleaned inside jit: rows with a NaN or infinite value, a negative range or a
+bearing outside [-pi, pi] are masked out and counted in ``info.num_invalid_obs``. The public
+``validate_observations`` raises instead (use it at the boundary of your program).
+"""
+from __future__ import annotations
+
+import functools
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax.scipy.special import logsumexp
+
+from jaxslam import association, ekf, landmarks, proposal, resampling
+from jaxslam.geometry import wrap_angle
+from jaxslam.motion import predict_pose, sample_motion
+from jaxslam.types import FilterConfig, FilterState, Observations, Params, Particles
+
+
+class StepInfo(NamedTuple):
+    """Diagnostics of one step (returned, never carried).
+
+    ess: () effective sample size before resampling. resampled: () bool.
+    weights_reset: () bool, every weight was zero (-inf log) and they were reset to uniform.
+    num_landmarks: (P,) int32 active slots per particle after the step.
+    match: (P, K) int32 landmark slot of each observation, -1 when unmatched.
+    match_rounds: () int32 most Gale-Shapley rounds used by any particle.
+    num_invalid_obs: () int32 observations masked out as malformed (NaN, negative range...).
+    num_dropped_births: (P,) int32 new landmarks dropped because the map was full.
+    num_set_aside: (P,) int32 observations set aside in the airlock.
+    mixture_ratio: () the phi used this step (0 for the motion proposal, 1 for observation).
+    num_observation_draws: () int32 particles drawn from the observation proposal.
+    mean_log_likelihood: () weighted mean of the per-observation log-likelihood.
+    """
+
+    ess: jnp.ndarray
+    resampled: jnp.ndarray
+    weights_reset: jnp.ndarray
+    num_landmarks: jnp.ndarray
+    match: jnp.ndarray
+    match_rounds: jnp.ndarray
+    num_invalid_obs: jnp.ndarray
+    num_dropped_births: jnp.ndarray
+    num_set_aside: jnp.ndarray
+    mixture_ratio: jnp.ndarray
+    num_observation_draws: jnp.ndarray
+    mean_log_likelihood: jnp.ndarray
+
+
+class Filter(NamedTuple):
+    """``init(initial_pose (3,)) -> FilterState``;
+    ``step(key, state, params, control (3,), obs) -> (state, StepInfo)``."""
+
+    config: FilterConfig
+    init: Callable
+    step: Callable
+
+
+class Estimate(NamedTuple):
+    """Point estimate of one run.
+
+    pose: (3,) weighted mean pose (circular mean heading); pose_cov: (3, 3);
+    best_particle: () int32 index of the highest weight; the map is that particle's:
+    landmark_mean (M, 2), landmark_cov (M, 2, 2), landmark_radius (M,), active (M,).
+    """
+
+    pose: jnp.ndarray
+    pose_cov: jnp.ndarray
+    best_particle: jnp.ndarray
+    landmark_mean: jnp.ndarray
+    landmark_cov: jnp.ndarray
+    landmark_radius: jnp.ndarray
+    active: jnp.ndarray
+
+
+class Trace(NamedTuple):
+    """Per-step record of ``run_filter``: every field has leading axis T.
+
+    mean_pose (T, 3), best_pose (T, 3), ess (T,), num_landmarks (T,) of the best particle,
+    resampled (T,), weights_reset (T,), num_invalid_obs (T,), num_dropped_births (T,) summed
+    over particles, match_rounds (T,), mixture_ratio (T,), mean_log_likelihood (T,).
+    """
+
+    mean_pose: jnp.ndarray
+    best_pose: jnp.ndarray
+    ess: jnp.ndarray
+    num_landmarks: jnp.ndarray
+    resampled: jnp.ndarray
+    weights_reset: jnp.ndarray
+    num_invalid_obs: jnp.ndarray
+    num_dropped_births: jnp.ndarray
+    match_rounds: jnp.ndarray
+    mixture_ratio: jnp.ndarray
+    mean_log_likelihood: jnp.ndarray
+
+
+class _ObserveResult(NamedTuple):
+    particle: Particles  # one particle (no P axis)
+    log_likelihood: jnp.ndarray  # ()
+    match: jnp.ndarray  # (K,)
+    rounds: jnp.ndarray  # ()
+    dropped: jnp.ndarray  # ()
+    set_aside: jnp.ndarray  # ()
+
+
+# --------------------------------------------------------------------------------------------
+# Observation cleaning
+
+
+def sanitize_observations(obs: Observations):
+    """Mask malformed rows inside jit. Returns (clean Observations, num_invalid ())."""
+    z = obs.z
+    finite = jnp.all(jnp.isfinite(z), axis=-1)
+    well_formed = finite & (z[..., 0] >= 0.0) & (jnp.abs(z[..., 1]) <= jnp.pi)
+    invalid = obs.valid & ~well_formed
+    valid = obs.valid & well_formed
+    z = jnp.where(valid[..., None], z, 0.0)
+    radius = jnp.where(valid & jnp.isfinite(obs.radius), obs.radius, 0.0)
+    clean = obs._replace(z=z, valid=valid, radius=radius)
+    return clean, jnp.sum(invalid).astype(jnp.int32)
+
+
+def validate_observations(obs: Observations, max_obs: int | None = None) -> None:
+    """Raise ``ValueError`` for malformed observations (use outside jit, on concrete arrays).
+
+    Checks shapes ((..., K, 2) with matching (..., K) masks), and, on valid rows, finite values,
+    non-negative ranges and bearings within [-pi, pi].
+    """
+    import numpy as np
+
+    z = np.asarray(obs.z)
+    if z.ndim < 2 or z.shape[-1] != 2:
+        raise ValueError(f"Observations.z must have shape (..., K, 2); got {z.shape}")
+    if max_obs is not None and z.shape[-2] != max_obs:
+        raise ValueError(
+            f"Observations have K={z.shape[-2]} rows but FilterConfig.max_obs={max_obs}; "
+            "pad or truncate to max_obs rows")
+    valid = np.asarray(obs.valid, bool)
+    for name in ("valid", "radius", "landmark_id"):
+        shape = np.shape(getattr(obs, name))
+        if shape != z.shape[:-1]:
+            raise ValueError(f"Observations.{name} has shape {shape}; expected {z.shape[:-1]}")
+    rows = z[valid]
+    if not np.all(np.isfinite(rows)):
+        raise ValueError(f"{int(np.sum(~np.isfinite(rows).all(-1)))} valid observation(s) "
+                         "contain NaN or inf; mark them invalid or remove them")
+    if np.any(rows[:, 0] < 0):
+        raise ValueError(f"{int(np.sum(rows[:, 0] < 0))} valid observation(s) have a negative "
+                         "range; ranges must be >= 0 metres")
+    if np.any(np.abs(rows[:, 1]) > np.pi):
+        raise ValueError("valid observation bearings must lie in [-pi, pi] radians; "
+                         f"got values up to {np.abs(rows[:, 1]).max():.3f}")
+
+
+# --------------------------------------------------------------------------------------------
+# One particle
+
+
+def _association_cost(config, obs, particle, mahalanobis, vis):
+    """(K, M) cost the associator sees: +inf outside the usable/matchable sets."""
+    allowed = vis.usable_obs[:, None] & vis.matchable[None, :]
+    if config.association == "known":
+        same = association.known_id_cost(obs.landmark_id, particle.landmark_id, particle.active)
+        return jnp.where(allowed & jnp.isfinite(same), 0.0, jnp.inf)
+    return jnp.where(allowed, mahalanobis, jnp.inf)
+
+
+def _observe(config: FilterConfig, params: Params, particle: Particles, match_pose,
+             obs: Observations) -> _ObserveResult:
+    """Steps 2-5 of the module docstring for one particle at pose ``particle.pose``.
+
+    ``match_pose`` (3,) is where association is computed (the pose itself for the motion
+    proposal; the motion prediction for the observation and mixture proposals).
+    """
+    num_slots = config.max_landmarks
+    predicted_match = ekf.predict_measurements(match_pose, particle.landmark_mean,
+                                               particle.landmark_cov, params)
+    mahalanobis = ekf.mahalanobis_sq(obs.z, predicted_match)
+    mahalanobis = jnp.where(obs.valid[:, None] & particle.active[None, :], mahalanobis, jnp.inf)
+    vis = landmarks.visibility(obs.z, obs.valid, particle.active, predicted_match, mahalanobis,
+                               params, config.boundary)
+    cost = _association_cost(config, obs, particle, mahalanobis, vis)
+    match, rounds = association.match(config.association, cost, params.association_gate,
+                                      config.match_rounds)
+    matched_obs = match >= 0
+    slot_of_obs = jnp.where(matched_obs, match, num_slots)
+    obs_of_slot = jnp.full((num_slots,), -1, jnp.int32).at[slot_of_obs].set(
+        jnp.arange(match.shape[0], dtype=jnp.int32), mode="drop")
+    matched_slot = obs_of_slot >= 0
+    z_of_slot = obs.z[jnp.clip(obs_of_slot, 0)]
+
+    if config.proposal == "motion":
+        predicted = predicted_match
+    else:
+        predicted = ekf.predict_measurements(particle.pose, particle.landmark_mean,
+                                             particle.landmark_cov, params)
+    # Per-observation likelihood at the particle's pose.
+    pred_k = jax.tree.map(lambda leaf: leaf[jnp.clip(match, 0)], predicted)
+    d_range = obs.z[:, 0] - pred_k.range
+    d_bearing = wrap_angle(obs.z[:, 1] - pred_k.bearing)
+    mahalanobis_k = (d_range**2 * pred_k.i_rr + 2.0 * d_range * d_bearing * pred_k.i_rb
+                     + d_bearing**2 * pred_k.i_bb)
+    matched_ll = ekf.gaussian_log_likelihood(mahalanobis_k, pred_k.log_det)
+    unexplained_ll = ekf.unexplained_log_likelihood(obs.z[:, 0], params)
+    log_likelihood = jnp.sum(jnp.where(obs.valid, jnp.where(matched_obs, matched_ll,
+                                                            unexplained_ll), 0.0))
+
+    new_mean, new_cov = ekf.update_landmarks(particle.landmark_mean, particle.landmark_cov,
+                                             predicted, z_of_slot, params)
+    mean = jnp.where(matched_slot[:, None], new_mean, particle.landmark_mean)
+    cov = jnp.where(matched_slot[:, None], new_cov, particle.landmark_cov)
+    radius_obs = obs.radius[jnp.clip(obs_of_slot, 0)]
+    count = particle.observation_count + matched_slot.astype(jnp.int32)
+    radius = jnp.where(matched_slot & (radius_obs > 0),
+                       particle.landmark_radius
+                       + (radius_obs - particle.landmark_radius) / jnp.maximum(count, 1),
+                       particle.landmark_radius)
+
+    missed = vis.matchable & ~matched_slot & ~vis.explained
+    existence = landmarks.update_existence(particle.existence, matched_slot, missed, params)
+    keep = particle.active & (existence >= params.existence_delete)
+    empty_mean, empty_cov, empty_radius = landmarks.empty_slot_values(num_slots, mean.dtype)
+    mean = jnp.where(keep[:, None], mean, empty_mean)
+    cov = jnp.where(keep[:, None], cov, empty_cov)
+    radius = jnp.where(keep, radius, empty_radius)
+    count = jnp.where(keep, count, 0)
+    landmark_id = jnp.where(keep, particle.landmark_id, -1)
+
+    birth = vis.usable_obs & ~matched_obs
+    if config.association == "known":
+        birth = birth & (obs.landmark_id >= 0)
+    slot, dropped = landmarks.birth_slots(keep, birth)
+    born_mean, born_cov = ekf.initialize_landmarks(particle.pose, obs.z, params)
+    active = keep.at[slot].set(True, mode="drop")
+    updated = particle._replace(
+        landmark_mean=landmarks.scatter_rows(mean, slot, born_mean),
+        landmark_cov=landmarks.scatter_rows(cov, slot, born_cov),
+        landmark_radius=landmarks.scatter_rows(radius, slot, obs.radius),
+        landmark_id=landmarks.scatter_rows(landmark_id, slot, obs.landmark_id),
+        active=active,
+        existence=landmarks.scatter_rows(
+            jnp.where(keep, existence, 0.0), slot,
+            jnp.broadcast_to(params.existence_init, slot.shape).astype(existence.dtype)),
+        observation_count=landmarks.scatter_rows(count, slot, jnp.ones_like(slot)),
+    )
+    return _ObserveResult(updated, log_likelihood, match, rounds, dropped,
+                          jnp.sum(vis.set_aside_obs).astype(jnp.int32))
+
+
+# --------------------------------------------------------------------------------------------
+# Proposal
+
+
+def _propose(config, key, params, particles: Particles, control, obs, ratio):
+    """Sample new poses (P, 3). Returns (poses, match poses, log-weight corrections (P,),
+    observation draws (P,) bool)."""
+    num = config.num_particles
+    key_motion, key_mixture = jax.random.split(key)
+    motion = config.motion_model
+    motion_draw = jax.vmap(lambda k, pose: sample_motion(k, pose, control, params, motion))(
+        jax.random.split(key_motion, num), particles.pose)
+    if config.proposal == "motion":
+        return motion_draw, motion_draw, jnp.zeros((num,), motion_draw.dtype), jnp.zeros(num, bool)
+
+    def one(k, particle, motion_sample):
+        x_hat = predict_pose(particle.pose, control, params, motion)
+        pose_cov = proposal.motion_pose_covariance(particle.pose, control, params, motion)
+        predicted = ekf.predict_measurements(x_hat, particle.landmark_mean,
+                                             particle.landmark_cov, params)
+        mahalanobis = ekf.mahalanobis_sq(obs.z, predicted)
+        mahalanobis = jnp.where(obs.valid[:, None] & particle.active[None, :], mahalanobis,
+                                jnp.inf)
+        vis = landmarks.visibility(obs.z, obs.valid, particle.active, predicted, mahalanobis,
+                                   params, config.boundary)
+        cost = _association_cost(config, obs, particle, mahalanobis, vis)
+        match, _ = association.match(config.association, cost, params.association_gate,
+                                     config.match_rounds)
+        gaussian = proposal.observation_proposal(x_hat, pose_cov, obs.z, match, predicted)
+        pose, used_obs = proposal.mixture_sample(k, motion_sample, gaussian, ratio)
+        correction = proposal.mixture_log_correction(particle.pose, pose, control, params,
+                                                     motion, gaussian, ratio)
+        return pose, x_hat, correction, used_obs
+
+    return jax.vmap(one)(jax.random.split(key_mixture, num), particles, motion_draw)
+
+
+def _mixture_ratio(config, params, state):
+    if config.proposal == "motion":
+        return jnp.zeros((), state.log_weight.dtype)
+    if config.proposal == "observation":
+        return jnp.ones((), state.log_weight.dtype)
+    if config.mixture_mode == "adaptive":
+        return proposal.adaptive_ratio(state.likelihood_fast, state.likelihood_slow, params)
+    return jnp.asarray(params.mixture_ratio, state.log_weight.dtype)
+
+
+# --------------------------------------------------------------------------------------------
+# Public API
+
+
+def _check_config(config) -> FilterConfig:
+    if not isinstance(config, FilterConfig):
+        raise TypeError(f"make_filter expects a FilterConfig; got {type(config).__name__}")
+    return config
+
+
+def _init(config: FilterConfig, initial_pose=None, dtype=jnp.float32) -> FilterState:
+    num, slots = config.num_particles, config.max_landmarks
+    pose = jnp.zeros(3, dtype) if initial_pose is None else jnp.asarray(initial_pose, dtype)
+    if pose.shape != (3,):
+        raise ValueError(f"initial_pose must have shape (3,) (x, y, theta); got {pose.shape}")
+    mean, cov, radius = landmarks.empty_slot_values(slots, dtype)
+    particles = Particles(
+        pose=jnp.broadcast_to(pose, (num, 3)),
+        landmark_mean=jnp.broadcast_to(mean, (num, slots, 2)),
+        landmark_cov=jnp.broadcast_to(cov, (num, slots, 3)),
+        landmark_radius=jnp.broadcast_to(radius, (num, slots)),
+        landmark_id=jnp.full((num, slots), -1, jnp.int32),
+        active=jnp.zeros((num, slots), bool),
+        existence=jnp.zeros((num, slots), dtype),
+        observation_count=jnp.zeros((num, slots), jnp.int32),
+    )
+    return FilterState(particles, jnp.full((num,), -jnp.log(num), dtype),
+                       jnp.zeros((), dtype), jnp.zeros((), dtype), jnp.zeros((), jnp.int32))
+
+
+def _step(config: FilterConfig, key, state: FilterState, params: Params, control,
+          obs: Observations):
+    key_propose, key_resample = jax.random.split(key)
+    obs, num_invalid = sanitize_observations(obs)
+    ratio = _mixture_ratio(config, params, state)
+    poses, match_poses, correction, used_obs = _propose(
+        config, key_propose, params, state.particles, control, obs, ratio)
+    moved = state.particles._replace(pose=poses)
+    result = jax.vmap(lambda particle, match_pose: _observe(config, params, particle,
+                                                            match_pose, obs))(moved, match_poses)
+    log_weight, reset = resampling.normalize_log_weights(
+        state.log_weight + result.log_likelihood + correction)
+
+    num_valid = jnp.sum(obs.valid)
+    mean_ll = jnp.sum(jnp.exp(state.log_weight) * result.log_likelihood) / jnp.maximum(
+        num_valid, 1)
+    fast, slow = proposal.update_likelihood_averages(
+        state.likelihood_fast, state.likelihood_slow, mean_ll, num_valid > 0, state.step == 0,
+        params)
+
+    ess = resampling.effective_sample_size(log_weight)
+    do_resample = ess < params.ess_threshold * config.num_particles
+
+    def resample(operand):
+        particles, weights = operand
+        indices = resampling.resample_indices(key_resample, weights, config.resampling)
+        uniform = jnp.full_like(weights, -jnp.log(config.num_particles))
+        return resampling.gather(particles, indices), uniform
+
+    particles, log_weight = jax.lax.cond(do_resample, resample, lambda operand: operand,
+                                         (result.particle, log_weight))
+    new_state = FilterState(particles, log_weight, fast, slow, state.step + 1)
+    info = StepInfo(
+        ess=ess, resampled=do_resample, weights_reset=reset,
+        num_landmarks=jnp.sum(particles.active, axis=1).astype(jnp.int32),
+        match=result.match, match_rounds=jnp.max(result.rounds).astype(jnp.int32),
+        num_invalid_obs=num_invalid, num_dropped_births=result.dropped,
+        num_set_aside=result.set_aside, mixture_ratio=ratio,
+        num_observation_draws=jnp.sum(used_obs).astype(jnp.int32),
+        mean_log_likelihood=mean_ll,
+    )
+    return new_state, info
+
+
+@functools.lru_cache(maxsize=None)
+def make_filter(config: FilterConfig) -> Filter:
+    """Build the filter for a static config. Cached: one Filter (and one trace) per config.
+
+    Raises:
+      TypeError / ValueError naming the offending field for an impossible config.
+    """
+    _check_config(config)
+    return Filter(config, functools.partial(_init, config), functools.partial(_step, config))
+
+
+def circular_weighted_mean_pose(pose, log_weight):
+    """Weighted mean (3,) of poses (P, 3), heading by the circular mean."""
+    weight = jnp.exp(log_weight)
+    heading = jnp.arctan2(jnp.sum(weight * jnp.sin(pose[:, 2])),
+                          jnp.sum(weight * jnp.cos(pose[:, 2])))
+    return jnp.stack([jnp.sum(weight * pose[:, 0]), jnp.sum(weight * pose[:, 1]), heading])
+
+
+def estimate(state: FilterState) -> Estimate:
+    """Weighted mean pose and the map of the highest-weight particle."""
+    particles, log_weight = state.particles, state.log_weight
+    mean = circular_weighted_mean_pose(particles.pose, log_weight)
+    diff = particles.pose - mean
+    diff = diff.at[:, 2].set(wrap_angle(diff[:, 2]))
+    pose_cov = jnp.einsum("p,pi,pj->ij", jnp.exp(log_weight), diff, diff)
+    best = jnp.argmax(log_weight).astype(jnp.int32)
+    return Estimate(mean, pose_cov, best, particles.landmark_mean[best],
+                    ekf.expand_covariance(particles.landmark_cov[best]),
+                    particles.landmark_radius[best], particles.active[best])
+
+
+def _trace_row(state: FilterState, info: StepInfo) -> Trace:
+    best = jnp.argmax(state.log_weight)
+    return Trace(
+        mean_pose=circular_weighted_mean_pose(state.particles.pose, state.log_weight),
+        best_pose=state.particles.pose[best], ess=info.ess,
+        num_landmarks=info.num_landmarks[best], resampled=info.resampled,
+        weights_reset=info.weights_reset, num_invalid_obs=info.num_invalid_obs,
+        num_dropped_births=jnp.sum(info.num_dropped_births), match_rounds=info.match_rounds,
+        mixture_ratio=info.mixture_ratio, mean_log_likelihood=info.mean_log_likelihood,
+    )
+
+
+def scan_filter(config: FilterConfig, key, state: FilterState, params: Params, controls,
+                observations: Observations):
+    """``lax.scan`` of ``step`` over T steps (traceable; vmap it over runs or params).
+
+    Step t uses key ``fold_in(key, t)``. Returns (final state, ``Trace``).
+    """
+    step = make_filter(config).step
+
+    def body(carry: FilterState, inputs):
+        t, control, obs = inputs
+        new_state, info = step(jax.random.fold_in(key, t), carry, params, control, obs)
+        return new_state, _trace_row(new_state, info)
+
+    steps = jnp.arange(controls.shape[0], dtype=jnp.int32)
+    return jax.lax.scan(body, state, (steps, controls, observations))
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _run_filter_jit(config, key, params, controls, observations, initial_pose):
+    state = make_filter(config).init(initial_pose, dtype=controls.dtype)
+    return scan_filter(config, key, state, params, controls, observations)
+
+
+def run_filter(config: FilterConfig | Filter, key, params: Params, controls,
+               observations: Observations, initial_pose=None):
+    """Run a whole sequence in one compiled call.
+
+    Args:
+      config: a ``FilterConfig`` (or a ``Filter`` from ``make_filter``).
+      key: PRNG key (required; step t uses ``fold_in(key, t)``).
+      params: ``Params``.
+      controls: (T, 3) controls of ``config.motion_model``.
+      observations: ``Observations`` with leaves (T, K, ...).
+      initial_pose: (3,) start pose of every particle (default origin).
+    Returns:
+      (final ``FilterState``, ``Trace`` with leading axis T).
+    """
+    if isinstance(config, Filter):
+        config = config.config
+    _check_config(config)
+    controls = jnp.asarray(controls)
+    if controls.ndim != 2 or controls.shape[1] != 3:
+        raise ValueError(f"controls must have shape (T, 3); got {controls.shape}")
+    if observations.z.shape[:1] != controls.shape[:1] or observations.z.shape[1:] != (
+            config.max_obs, 2):
+        raise ValueError(
+            f"observations.z must have shape (T, K, 2) = ({controls.shape[0]}, "
+            f"{config.max_obs}, 2) to match controls and FilterConfig.max_obs; "
+            f"got {observations.z.shape}")
+    if initial_pose is None:
+        initial_pose = jnp.zeros(3, controls.dtype)
+    return _run_filter_jit(config, key, params, controls, observations,
+                           jnp.asarray(initial_pose, controls.dtype))

@@ -1,0 +1,115 @@
+"""Landmark life cycle in masked slots: visibility, the loose-boundary airlock, evidence, birth,
+death. All functions act on ONE particle's map; the filter vmaps them over particles.
+
+Loose boundary (seed 000 section 3.1, Fig. 3). Near the lidar's maximum range R_max, noise
+can put a particle's landmark just inside the range while its tree is just beyond (the hard
+boundary then deletes the landmark), or the reverse (the hard boundary creates a twin). The
+airlock is a ring inside R_max whose width follows from the correspondence threshold:
+
+    observation k:  w_k = airlock_sigmas * sigma_range(z_k)        (its own range noise)
+    landmark m:     w_m = airlock_sigmas * sqrt(S_m[range, range]) (predicted range std)
+
+With airlock_sigmas = sqrt(gate), no observation closer than R_max - w_k can be associated
+with an invisible landmark, and vice versa. An observation is set aside when
+z_k > R_max - w_k or when it could match (d2 <= gate) a landmark in the ring
+(R_max - w_m < r_m <= R_max + w_m). Only landmarks inside R_max - w_m take part in matching.
+Unmatched observations that were not set aside create landmarks; unmatched matchable
+landmarks that no set-aside observation could explain lose evidence. Landmarks in the ring
+keep their evidence. The hard boundary uses R_max alone: every observation within range is
+matched or creates a landmark, every unmatched landmark within range loses evidence.
+
+Existence evidence in log-odds (detection probability p_d, false alarm probability p_f):
+hit += log(p_d / p_f), miss += log((1 - p_d) / (1 - p_f)), clipped to +-existence_max;
+a landmark is deleted when its log-odds fall below ``existence_delete``.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+
+from jaxslam.ekf import PredictedMeasurement, measurement_std
+from jaxslam.types import Params
+
+
+class Visibility(NamedTuple):
+    """Which observations and landmarks take part in matching (one particle).
+
+    usable_obs: (K,) valid observations that take part in matching.
+    set_aside_obs: (K,) valid observations set aside in the airlock (never create landmarks).
+    matchable: (M,) active landmarks that take part in matching.
+    explained: (M,) landmarks a set-aside observation could explain (kept from penalties).
+    """
+
+    usable_obs: jnp.ndarray
+    set_aside_obs: jnp.ndarray
+    matchable: jnp.ndarray
+    explained: jnp.ndarray
+
+
+def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobis,
+               params: Params, boundary: str) -> Visibility:
+    """Hard or loose visibility boundary (module docstring).
+
+    Args:
+      z: (K, 2); obs_valid: (K,); active: (M,); predicted: (M,) fields;
+      mahalanobis: (K, M) squared distances (+inf for impossible pairs).
+    """
+    in_min_range = predicted.range >= params.min_range
+    if boundary == "hard":
+        usable = obs_valid & (z[:, 0] <= params.max_range)
+        matchable = active & in_min_range & (predicted.range <= params.max_range)
+        no_obs = jnp.zeros_like(usable)
+        return Visibility(usable, no_obs, matchable, jnp.zeros_like(matchable))
+    if boundary != "loose":
+        raise ValueError(f"boundary={boundary!r}; expected 'hard' or 'loose'")
+    obs_width = params.airlock_sigmas * measurement_std(z[:, 0], params)[0]
+    obs_in_ring = z[:, 0] > params.max_range - obs_width
+    landmark_width = params.airlock_sigmas * jnp.sqrt(predicted.s_rr)
+    landmark_in_ring = (active & (predicted.range > params.max_range - landmark_width)
+                        & (predicted.range <= params.max_range + landmark_width))
+    gated = mahalanobis <= params.association_gate
+    near_ring_landmark = jnp.any(gated & landmark_in_ring[None, :], axis=1)
+    set_aside = obs_valid & (obs_in_ring | near_ring_landmark)
+    matchable = active & in_min_range & (predicted.range <= params.max_range - landmark_width)
+    explained = jnp.any(gated & set_aside[:, None], axis=0)
+    return Visibility(obs_valid & ~set_aside, set_aside, matchable, explained)
+
+
+def update_existence(existence, matched, missed, params: Params):
+    """Log-odds evidence update of (M,) slots: + hit for matched, + miss for missed."""
+    hit = jnp.log(params.detection_probability / params.false_alarm_probability)
+    miss = jnp.log((1.0 - params.detection_probability) / (1.0 - params.false_alarm_probability))
+    updated = existence + jnp.where(matched, hit, 0.0) + jnp.where(missed, miss, 0.0)
+    return jnp.clip(updated, -params.existence_max, params.existence_max)
+
+
+def birth_slots(active, birth):
+    """Slot index for each observation that creates a landmark: the first free slots in order.
+
+    Args:
+      active: (M,) bool occupancy; birth: (K,) bool observations that create landmarks.
+    Returns:
+      slot: (K,) int32 in [0, M) for a placed birth and M (out of bounds, dropped by scatter)
+        otherwise; dropped: () int32 births that found no free slot (a full map never
+        overwrites an active landmark).
+    """
+    num_slots = active.shape[0]
+    free_first = jnp.argsort(active, stable=True)  # free slots (False) first, in index order
+    num_free = jnp.sum(~active)
+    rank = jnp.cumsum(birth) - 1
+    placed = birth & (rank < num_free)
+    slot = jnp.where(placed, free_first[jnp.clip(rank, 0, num_slots - 1)], num_slots)
+    return slot.astype(jnp.int32), jnp.sum(birth & ~placed).astype(jnp.int32)
+
+
+def scatter_rows(slot_values, slot, new_values):
+    """Write new_values[k] into slot_values[slot[k]]; out-of-range slots are dropped."""
+    return slot_values.at[slot].set(new_values, mode="drop")
+
+
+def empty_slot_values(num_slots: int, dtype):
+    """Finite placeholder values of an empty slot: mean, cov components, radius."""
+    return (jnp.zeros((num_slots, 2), dtype),
+            jnp.tile(jnp.array([1.0, 0.0, 1.0], dtype), (num_slots, 1)),
+            jnp.zeros((num_slots,), dtype))

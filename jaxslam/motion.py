@@ -1,0 +1,169 @@
+"""Motion models: odometry rot1-trans-rot2 (seed 000 Eq. 1), velocity and Ackermann.
+
+Every model's noise lives on the odometry decomposition of the move. A move from pose
+(x, y, theta) is a first rotation rot1, a translation trans and a second rotation rot2:
+
+    x' = x + trans cos(theta + rot1),  y' = y + trans sin(theta + rot1),
+    theta' = theta + rot1 + rot2.
+
+Seed 000 Eq. (1): the true move is drawn around the measured one with
+
+    sigma_rot1  = a1 |trans| + b1 |rot1|          + c1      (Table 1 row 1)
+    sigma_trans = a2 |trans| + b2 (|rot1|+|rot2|) + c2      (Table 1 row 2)
+    sigma_rot2  = a3 |trans| + b3 |rot2|          + c3      (Table 1 row 3)
+
+Degeneracy: when trans is near zero, rot1 is the angle of pose jitter (anything in [-pi, pi))
+and the b2 |rot1| term explodes. Below ``params.min_translation`` rot1 is set to 0 and the
+whole turn goes to rot2.
+
+The velocity (v, omega, dt) and Ackermann (v_encoder, steering, dt) controls are integrated
+exactly (constant rates over dt) into a relative pose, decomposed into (rot1, trans, rot2), and
+the same Eq. (1) noise is applied. So all three share one sampler and one density.
+
+Shapes: ``pose`` (..., 3), ``control`` (..., 3), ``odometry`` (..., 3) = (rot1, trans, rot2).
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from jaxslam.geometry import compose, relative, wrap_angle
+from jaxslam.types import MOTION_MODELS, Params
+
+_LOG_2PI = 1.8378770664093453
+
+
+def odometry_from_relative(delta, min_translation):
+    """(rot1, trans, rot2) of a relative pose ``delta`` (..., 3) in the start pose's frame."""
+    trans = jnp.hypot(delta[..., 0], delta[..., 1])
+    moving = trans >= min_translation
+    # Double where: arctan2(0, 0) is fine forward but its gradient is NaN.
+    safe_x = jnp.where(moving, delta[..., 0], 1.0)
+    safe_y = jnp.where(moving, delta[..., 1], 0.0)
+    rot1 = jnp.where(moving, jnp.arctan2(safe_y, safe_x), 0.0)
+    rot2 = wrap_angle(delta[..., 2] - rot1)
+    return jnp.stack([rot1, trans, rot2], axis=-1)
+
+
+def odometry_from_poses(pose_prev, pose_next, min_translation):
+    """The move (rot1, trans, rot2) that takes ``pose_prev`` to ``pose_next``, both (..., 3)."""
+    return odometry_from_relative(relative(pose_prev, pose_next), min_translation)
+
+
+def apply_odometry(pose, odometry):
+    """Pose (..., 3) after the move (rot1, trans, rot2) (..., 3); the header's equations."""
+    rot1, trans, rot2 = odometry[..., 0], odometry[..., 1], odometry[..., 2]
+    heading = pose[..., 2] + rot1
+    return jnp.stack(
+        [pose[..., 0] + trans * jnp.cos(heading), pose[..., 1] + trans * jnp.sin(heading),
+         wrap_angle(heading + rot2)],
+        axis=-1,
+    )
+
+
+def odometry_std(odometry, params: Params):
+    """Seed 000 Eq. (1) standard deviations (..., 3) of (rot1, trans, rot2)."""
+    abs_rot1 = jnp.abs(odometry[..., 0])
+    abs_trans = jnp.abs(odometry[..., 1])
+    abs_rot2 = jnp.abs(odometry[..., 2])
+
+    def linear(coeffs, abs_rot):
+        return coeffs[0] * abs_trans + coeffs[1] * abs_rot + coeffs[2]
+
+    return jnp.stack(
+        [linear(params.rot1_noise, abs_rot1),
+         linear(params.trans_noise, abs_rot1 + abs_rot2),
+         linear(params.rot2_noise, abs_rot2)],
+        axis=-1,
+    )
+
+
+def sample_odometry(key, odometry, params: Params):
+    """Draw a true move around the measured ``odometry`` (3,) per Eq. (1). Returns (3,)."""
+    noise = jax.random.normal(key, odometry.shape, odometry.dtype)
+    sample = odometry + noise * odometry_std(odometry, params)
+    return sample.at[..., 0].set(wrap_angle(sample[..., 0])).at[..., 2].set(
+        wrap_angle(sample[..., 2]))
+
+
+def arc_delta(speed, yaw_rate, dt):
+    """Relative pose (..., 3) after moving at constant speed and yaw rate for dt.
+
+    delta = (v sin(w dt) / w, v (1 - cos(w dt)) / w, w dt), with the straight-line limit
+    (v dt, 0, 0) as w -> 0 (double where keeps gradients finite).
+    """
+    angle = yaw_rate * dt
+    turning = jnp.abs(angle) > 1e-6
+    safe_rate = jnp.where(turning, yaw_rate, 1.0)
+    forward = jnp.where(turning, jnp.sin(angle) / safe_rate, dt * (1.0 - angle**2 / 6.0))
+    lateral = jnp.where(turning, (1.0 - jnp.cos(angle)) / safe_rate, dt * angle / 2.0)
+    return jnp.stack([speed * forward, speed * lateral, angle], axis=-1)
+
+
+def ackermann_delta(control, params: Params):
+    """Relative laser pose (..., 3) for an Ackermann control (v_encoder, steering, dt).
+
+    Victoria Park kinematics: the rear-axle centre moves at vc = v / (1 - tan(a) H / L) with
+    yaw rate vc tan(a) / L; the pose is the laser's, offset (laser_forward, laser_left) from
+    the rear axle, so delta = offset^-1 (+) arc (+) offset.
+    """
+    speed, steering, dt = control[..., 0], control[..., 1], control[..., 2]
+    tan_steer = jnp.tan(steering)
+    centre_speed = speed / (1.0 - tan_steer * params.encoder_offset / params.wheelbase)
+    yaw_rate = centre_speed * tan_steer / params.wheelbase
+    arc = arc_delta(centre_speed, yaw_rate, dt)
+    offset = jnp.stack(jnp.broadcast_arrays(params.laser_forward, params.laser_left,
+                                            jnp.zeros_like(params.laser_left)), axis=-1)
+    offset = jnp.broadcast_to(offset, arc.shape)
+    return compose(compose(relative(offset, jnp.zeros_like(offset)), arc), offset)
+
+
+def control_to_odometry(control, params: Params, motion_model: str):
+    """The measured move (rot1, trans, rot2) (..., 3) of a control of the given model."""
+    if motion_model == "odometry":
+        return control
+    if motion_model == "velocity":
+        delta = arc_delta(control[..., 0], control[..., 1], control[..., 2])
+    elif motion_model == "ackermann":
+        delta = ackermann_delta(control, params)
+    else:
+        raise ValueError(f"motion_model={motion_model!r}; expected one of {list(MOTION_MODELS)}")
+    return odometry_from_relative(delta, params.min_translation)
+
+
+def sample_motion(key, pose, control, params: Params, motion_model: str = "odometry"):
+    """Sample x_t ~ p(x_t | x_{t-1} = pose (3,), control (3,)). Returns (3,)."""
+    odometry = control_to_odometry(control, params, motion_model)
+    return apply_odometry(pose, sample_odometry(key, odometry, params))
+
+
+def predict_pose(pose, control, params: Params, motion_model: str = "odometry"):
+    """Noise-free motion prediction (..., 3)."""
+    return apply_odometry(pose, control_to_odometry(control, params, motion_model))
+
+
+def odometry_log_density(true_odometry, odometry, params: Params):
+    """log N(true_odometry; odometry, diag(std(odometry)^2)) over (rot1, trans, rot2), (...,)."""
+    std = odometry_std(odometry, params)
+    diff = true_odometry - odometry
+    diff = diff.at[..., 0].set(wrap_angle(diff[..., 0])).at[..., 2].set(wrap_angle(diff[..., 2]))
+    return jnp.sum(-0.5 * (diff / std) ** 2 - jnp.log(std) - 0.5 * _LOG_2PI, axis=-1)
+
+
+def motion_log_density(pose_prev, pose_next, control, params: Params,
+                       motion_model: str = "odometry"):
+    """log p(pose_next | pose_prev, control) as a density over the pose (x, y, theta).
+
+    The move density of Eq. (1) divided by the Jacobian of (rot1, trans, rot2) -> pose, whose
+    determinant is trans: p(x') = p(rot1, trans, rot2) / trans. The translation is clamped
+    below by ``min_translation`` (the pure-turn regime, where the move density is itself a
+    density over (x, y, theta) up to this constant). Negative sampled translations are
+    neglected (their probability is negligible while sigma_trans << trans).
+
+    Args:
+      pose_prev, pose_next: (..., 3); control: (..., 3). Returns (...,).
+    """
+    odometry = control_to_odometry(control, params, motion_model)
+    true_odometry = odometry_from_poses(pose_prev, pose_next, params.min_translation)
+    jacobian = jnp.maximum(true_odometry[..., 1], params.min_translation)
+    return odometry_log_density(true_odometry, odometry, params) - jnp.log(jacobian)
