@@ -1,0 +1,26 @@
+"""Robot logs: the documented jaxslam ``.npz`` format and the Victoria Park loader."""
+from jaxslam.datasets.log_format import (
+    FORMAT_VERSION,
+    VICTORIA_PARK_VEHICLE,
+    AckermannVehicle,
+    LogFormatError,
+    RobotLog,
+    integrate_controls,
+    load_log,
+    odometry_between,
+    odometry_path,
+    save_log,
+    validate_log,
+)
+from jaxslam.datasets.victoria_park import (
+    GpsError,
+    VictoriaPark,
+    dead_reckoning_controls,
+    dead_reckoning_path,
+    default_victoria_park_dir,
+    filter_gps,
+    gps_error,
+    load_victoria_park,
+    rigid_align_2d,
+    victoria_park_log,
+)
