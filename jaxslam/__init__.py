@@ -1,13 +1,42 @@
-"""jaxslam: JAX-accelerated, batched FastSLAM for forestry robots."""
-from jaxslam.types import (
-    FilterConfig,
-    FilterState,
-    Particles,
-    Observations,
-    Params,
-    default_params,
-    empty_observations,
-    make_observations,
-)
+"""jaxslam: JAX-accelerated, batched FastSLAM for forestry robots.
+
+The public API is loaded lazily (PEP 562) so that ``import jaxslam.cli`` and ``jaxslam --help``
+do not pay for importing JAX.
+"""
+from __future__ import annotations
+
+import importlib
 
 __version__ = "0.1.0"
+
+_PUBLIC = {
+    "FilterConfig": "jaxslam.types",
+    "FilterState": "jaxslam.types",
+    "Particles": "jaxslam.types",
+    "Observations": "jaxslam.types",
+    "Params": "jaxslam.types",
+    "default_params": "jaxslam.types",
+    "make_observations": "jaxslam.types",
+    "empty_observations": "jaxslam.types",
+    "make_filter": "jaxslam.filter",
+    "run_filter": "jaxslam.filter",
+    "estimate": "jaxslam.filter",
+    "validate_observations": "jaxslam.filter",
+    "Filter": "jaxslam.filter",
+    "StepInfo": "jaxslam.filter",
+    "stable_match": "jaxslam.association",
+}
+
+__all__ = sorted(_PUBLIC) + ["__version__"]
+
+
+def __getattr__(name: str):
+    if name in _PUBLIC:
+        value = getattr(importlib.import_module(_PUBLIC[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'jaxslam' has no attribute {name!r}")
+
+
+def __dir__():
+    return __all__

@@ -405,7 +405,7 @@ def estimate(state: FilterState) -> Estimate:
     """Weighted mean pose and the map of the highest-weight particle."""
     particles, log_weight = state.particles, state.log_weight
     mean = circular_weighted_mean_pose(particles.pose, log_weight)
-    diff = particles.pose - mean
+    diff = particles.pose - mean[None, :]
     diff = diff.at[:, 2].set(wrap_angle(diff[:, 2]))
     pose_cov = jnp.einsum("p,pi,pj->ij", jnp.exp(log_weight), diff, diff)
     best = jnp.argmax(log_weight).astype(jnp.int32)
