@@ -38,6 +38,7 @@ from jaxslam.filter import estimate, make_filter, scan_filter
 from jaxslam.types import FilterConfig, Params, default_params
 
 _CHUNK_PREFIX = "chunk-"
+LIDAR_BEAMS = 720
 _KNOWN_FILES = {"study.toml", "provenance.toml", "summary.md", "example_run.npz"}
 SUMMARY_METRICS = ("final_pose_error", "ate_rmse", "ate_rmse_aligned", "map_error",
                    "redundant", "orphan", "num_landmarks", "gospa", "pose_nees", "diverged",
@@ -296,20 +297,34 @@ def _simulator(settings: ScenarioConfig, seed: int, max_obs: int):
     moves = true_moves(path, params.min_translation)
     gap = path[:, None, :2] - centres[None]
     in_range = jnp.min(jnp.hypot(gap[..., 0], gap[..., 1]), axis=0) <= settings.max_range
-    lidar_world = world_from_forest(forest) if settings.observation_source == "lidar" else None
+    if settings.observation_source == "lidar":
+        # Every run follows the same true path through the same forest, so the noise-free
+        # scans are cast once (T scans) and each run only adds its own beam noise and detects.
+        from jaxslam.detect import detect_trunks
+        from sims.lidar import add_range_noise, beam_angles, scan_2d_full
 
-    def observe(key, pose):
+        lidar_world = world_from_forest(forest)
+        clean_scans = jax.lax.map(
+            lambda pose: scan_2d_full(lidar_world, pose, LIDAR_BEAMS, settings.max_range).ranges,
+            path[1:])
+        angles = jnp.asarray(beam_angles(LIDAR_BEAMS), jnp.float32)
+
+    def observe(key, pose, step):
         if settings.observation_source == "analytic":
             return scenario_lib.analytic_observations(key, pose, centres, radii, params, max_obs)
-        return scenario_lib.lidar_observations(key, lidar_world, pose, max_obs,
-                                               settings.max_range, 720, (0.005, 0.0),
-                                               settings.detection, {})
+        key_noise, key_detect = jax.random.split(key)
+        ranges = add_range_noise(key_noise, clean_scans[step], settings.max_range)
+        return detect_trunks(ranges, angles, settings.detection, max_obs=max_obs,
+                             max_range=settings.max_range, min_range=float(params.min_range),
+                             key=key_detect if settings.detection == "ransac" else None)
 
     def one_run(run_id):
         run_key = jax.random.fold_in(jax.random.PRNGKey(seed), run_id)
         key_odometry, key_obs = jax.random.split(jax.random.fold_in(run_key, 0))
         controls = noisy_odometry(key_odometry, moves, params)
-        observations = jax.vmap(observe)(jax.random.split(key_obs, moves.shape[0]), path[1:])
+        steps = jnp.arange(moves.shape[0])
+        observations = jax.vmap(observe)(jax.random.split(key_obs, moves.shape[0]), path[1:],
+                                         steps)
         if settings.observation_source == "analytic":
             ids = jnp.where(observations.valid, observations.landmark_id, centres.shape[0])
             seen = jnp.zeros(centres.shape[0], bool).at[ids.ravel()].set(True, mode="drop")
