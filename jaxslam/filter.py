@@ -230,7 +230,7 @@ def _observe(config: FilterConfig, params: Params, particle: Particles, match_po
                        + (radius_obs - particle.landmark_radius) / jnp.maximum(count, 1),
                        particle.landmark_radius)
 
-    missed = vis.matchable & ~matched_slot & ~vis.explained
+    missed = vis.expected & ~matched_slot & ~vis.explained
     existence = landmarks.update_existence(particle.existence, matched_slot, missed, params)
     keep = particle.active & (existence >= params.existence_delete)
     empty_mean, empty_cov, empty_radius = landmarks.empty_slot_values(num_slots, mean.dtype)

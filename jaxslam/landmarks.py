@@ -15,7 +15,9 @@ z_k > R_max - w_k or when it could match (d2 <= gate) a landmark in the ring
 (R_max - w_m < r_m <= R_max + w_m). Only landmarks inside R_max - w_m take part in matching.
 Unmatched observations that were not set aside create landmarks; unmatched matchable
 landmarks that no set-aside observation could explain lose evidence. Landmarks in the ring
-keep their evidence. The hard boundary uses R_max alone: every observation within range is
+keep their evidence. When all K observation rows are used, the sensor may have dropped farther
+trunks (detectors keep the K nearest): landmarks beyond the farthest observation are then not
+penalised either. The hard boundary uses R_max alone: every observation within range is
 matched or creates a landmark, every unmatched landmark within range loses evidence.
 
 Existence evidence in log-odds (detection probability p_d, false alarm probability p_f):
@@ -39,12 +41,16 @@ class Visibility(NamedTuple):
     set_aside_obs: (K,) valid observations set aside in the airlock (never create landmarks).
     matchable: (M,) active landmarks that take part in matching.
     explained: (M,) landmarks a set-aside observation could explain (kept from penalties).
+    expected: (M,) matchable landmarks the sensor should have reported: when all K
+      observation rows are valid the detector may have dropped farther trunks (detectors and
+      simulators keep the K nearest), so only landmarks up to the farthest observation count.
     """
 
     usable_obs: jnp.ndarray
     set_aside_obs: jnp.ndarray
     matchable: jnp.ndarray
     explained: jnp.ndarray
+    expected: jnp.ndarray
 
 
 def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobis,
@@ -56,11 +62,15 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
       mahalanobis: (K, M) squared distances (+inf for impossible pairs).
     """
     in_min_range = predicted.range >= params.min_range
+    saturated = jnp.all(obs_valid)
+    horizon = jnp.where(saturated, jnp.max(jnp.where(obs_valid, z[:, 0], 0.0)), jnp.inf)
+    within_horizon = predicted.range <= horizon
     if boundary == "hard":
         usable = obs_valid & (z[:, 0] <= params.max_range)
         matchable = active & in_min_range & (predicted.range <= params.max_range)
         no_obs = jnp.zeros_like(usable)
-        return Visibility(usable, no_obs, matchable, jnp.zeros_like(matchable))
+        return Visibility(usable, no_obs, matchable, jnp.zeros_like(matchable),
+                          matchable & within_horizon)
     if boundary != "loose":
         raise ValueError(f"boundary={boundary!r}; expected 'hard' or 'loose'")
     obs_width = params.airlock_sigmas * measurement_std(z[:, 0], params)[0]
@@ -73,7 +83,8 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
     set_aside = obs_valid & (obs_in_ring | near_ring_landmark)
     matchable = active & in_min_range & (predicted.range <= params.max_range - landmark_width)
     explained = jnp.any(gated & set_aside[:, None], axis=0)
-    return Visibility(obs_valid & ~set_aside, set_aside, matchable, explained)
+    return Visibility(obs_valid & ~set_aside, set_aside, matchable, explained,
+                      matchable & within_horizon)
 
 
 def update_existence(existence, matched, missed, params: Params):
