@@ -38,7 +38,9 @@ from jaxslam.filter import estimate, make_filter, scan_filter
 from jaxslam.types import FilterConfig, Params, default_params
 
 _CHUNK_PREFIX = "chunk-"
-LIDAR_BEAMS = 720
+# 1440 beams (0.25 degree): at 720, trunks beyond ~10 m get fewer than 4 points.
+LIDAR_BEAMS = 1440
+LIDAR_BEAM_NOISE = (0.0, 0.01)  # per-beam range std (per metre, constant) [m]
 _KNOWN_FILES = {"study.toml", "provenance.toml", "summary.md", "example_run.npz"}
 SUMMARY_METRICS = ("final_pose_error", "ate_rmse", "ate_rmse_aligned", "map_error",
                    "redundant", "orphan", "num_landmarks", "gospa", "pose_nees", "diverged",
@@ -313,7 +315,8 @@ def _simulator(settings: ScenarioConfig, seed: int, max_obs: int):
         if settings.observation_source == "analytic":
             return scenario_lib.analytic_observations(key, pose, centres, radii, params, max_obs)
         key_noise, key_detect = jax.random.split(key)
-        ranges = add_range_noise(key_noise, clean_scans[step], settings.max_range)
+        ranges = add_range_noise(key_noise, clean_scans[step], settings.max_range,
+                                 LIDAR_BEAM_NOISE)
         return detect_trunks(ranges, angles, settings.detection, max_obs=max_obs,
                              max_range=settings.max_range, min_range=float(params.min_range),
                              key=key_detect if settings.detection == "ransac" else None)
@@ -527,6 +530,57 @@ def _chunk_rows(config, start, stop, values, seconds) -> dict:
     return rows
 
 
+class _ChunkRunner:
+    """Simulates and filters one chunk of runs; compiles once; shards runs over devices.
+
+    With D > 1 local devices the run axis is split over a 1-D mesh ("mc") with
+    ``NamedSharding``; the chunk is padded to a multiple of D (padded runs repeat the last id
+    and are dropped). Each run's numbers depend only on its id, never on D or the chunk size.
+    """
+
+    def __init__(self, config: StudyConfig):
+        self.config = config
+        self.params = condition_params(config)
+        self.function = _chunk_fn(config)
+        self.compiled = None
+        self.compile_seconds = self.filter_seconds = self.simulator_seconds = 0.0
+        devices = jax.devices()
+        self.mesh = None
+        if len(devices) > 1:
+            self.mesh = jax.make_mesh((len(devices),), ("mc",),
+                                      axis_types=(jax.sharding.AxisType.Auto,))
+        multiple = len(devices)
+        self.padded_size = -(-config.chunk_size // multiple) * multiple
+
+    def _shard(self, tree):
+        if self.mesh is None:
+            return tree
+        sharding = jax.sharding.NamedSharding(self.mesh, jax.sharding.PartitionSpec("mc"))
+        return jax.device_put(tree, sharding)
+
+    def __call__(self, start: int, stop: int):
+        config = self.config
+        run_ids = _pad_ids(np.arange(start, stop), self.padded_size)
+        tick = time.perf_counter()
+        scenario = jax.block_until_ready(scenario_batch(config, run_ids))
+        self.simulator_seconds += time.perf_counter() - tick
+        keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(config.seed), i))(
+            jnp.asarray(run_ids, jnp.uint32))
+        keys, controls, observations, seen = self._shard(
+            (keys, scenario.controls, scenario.observations, scenario.tree_seen))
+        args = (keys, self.params, controls, observations,
+                scenario._replace(controls=None, observations=None, tree_seen=seen))
+        if self.compiled is None:
+            tick = time.perf_counter()
+            self.compiled = self.function.lower(*args).compile()
+            self.compile_seconds = time.perf_counter() - tick
+        tick = time.perf_counter()
+        values, errors, example = jax.block_until_ready(self.compiled(*args))
+        seconds = time.perf_counter() - tick
+        self.filter_seconds += seconds
+        return scenario, values, errors, example, seconds
+
+
 def run_study(config: StudyConfig, out_dir, progress: bool = True) -> StudyResult:
     """Run (or resume) a study; see the module docstring for what lands in ``out_dir``."""
     import pyarrow as pa
@@ -540,45 +594,29 @@ def run_study(config: StudyConfig, out_dir, progress: bool = True) -> StudyResul
         warnings.warn(f"{out_dir} holds files this study did not write (left untouched): "
                       f"{strangers}")
     num_conditions = len(config.conditions)
-    params = condition_params(config)
-    chunk = _chunk_fn(config)
+    runner = _ChunkRunner(config)
     starts = list(range(0, config.num_runs, config.chunk_size))
-    compile_seconds = filter_seconds = simulator_seconds = 0.0
     bar = tqdm(starts, desc=f"study {config.name}", unit="chunk", disable=not progress)
     for start in bar:
         stop = min(start + config.chunk_size, config.num_runs)
         path = out_dir / _chunk_name(start, stop)
         if _existing_chunk_ok(path, start, stop, num_conditions):
             continue
-        run_ids = _pad_ids(np.arange(start, stop), config.chunk_size)
-        tick = time.perf_counter()
-        scenario = jax.block_until_ready(scenario_batch(config, run_ids))
-        simulator_seconds += time.perf_counter() - tick
-        keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(config.seed), i))(
-            jnp.asarray(run_ids, jnp.uint32))
-        tick = time.perf_counter()
-        args = (keys, params, scenario.controls, scenario.observations,
-                scenario._replace(controls=None, observations=None))
-        if compile_seconds == 0.0:
-            chunk = chunk.lower(*args).compile()
-            compile_seconds = time.perf_counter() - tick
-            tick = time.perf_counter()
-        values, errors, example = jax.block_until_ready(chunk(*args))
-        seconds = time.perf_counter() - tick
-        filter_seconds += seconds
+        scenario, values, errors, example, seconds = runner(start, stop)
         rows = _chunk_rows(config, start, stop, values, seconds)
-        table = pa.table(rows)
         np_errors = np.asarray(errors)[:, :stop - start].reshape(-1, errors.shape[-1])
         _atomic_write(out_dir / f"traces-{start:06d}-{stop:06d}.npz",
                       lambda p: _save_npz(p, run_id=rows["run_id"], condition=rows["condition"],
                                           pose_error=np_errors))
         if start == 0:
             _write_example(out_dir, scenario, example)
-        _atomic_write(path, lambda p: pq.write_table(table, p))
-        bar.set_postfix(runs=stop, filter_s=f"{filter_seconds:.1f}")
+        # The chunk file is written last: its presence marks the chunk (and its traces) done.
+        _atomic_write(path, lambda p: pq.write_table(pa.table(rows), p))
+        bar.set_postfix(runs=stop, filter_s=f"{runner.filter_seconds:.1f}")
     table = load_results(out_dir)
     summarize_study(out_dir, table)
-    return StudyResult(out_dir, table, compile_seconds, filter_seconds, simulator_seconds)
+    return StudyResult(out_dir, table, runner.compile_seconds, runner.filter_seconds,
+                       runner.simulator_seconds)
 
 
 def _save_npz(path: pathlib.Path, **arrays) -> None:

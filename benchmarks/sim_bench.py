@@ -1,0 +1,75 @@
+"""Simulator benchmark: lidar scans per second and scenario build times.
+
+Run: ``.venv/bin/python benchmarks/sim_bench.py [--quick]``. Compile and run times are printed
+apart; run times are measured after ``block_until_ready`` on a second call.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+
+import sims
+
+
+def timed(fn, *args):
+    """(compile + first run seconds, steady run seconds, result)."""
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - start
+    start = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    return first, time.perf_counter() - start, out
+
+
+def bench_scans(num_poses: int):
+    forest = sims.random_forest(jax.random.PRNGKey(0), 400, (120.0, 120.0))
+    world = sims.world_from_forest(forest)
+    poses = jnp.concatenate([jax.random.uniform(jax.random.PRNGKey(1), (num_poses, 2),
+                                                minval=20.0, maxval=100.0),
+                             jnp.zeros((num_poses, 1))], -1)
+    print(f"scans: 720 beams, 400 trunks in 120 m x 120 m (+ ground plane), 20 m range, "
+          f"{num_poses} poses per vmapped call")
+    for cull in (True, False):
+        fn = jax.jit(jax.vmap(lambda p: sims.scan_2d_full(world, p, 720, 20.0, cull=cull)))
+        first, run, scan = timed(fn, poses)
+        print(f"  cull={cull!s:5}: compile+first {first:6.2f} s, run {run:6.3f} s, "
+              f"{num_poses / run:8.1f} scans/s, culling complete: {bool(scan.complete.all())}")
+
+
+def bench_scenarios(num_runs: int, num_steps: int, lidar_runs: int, lidar_steps: int):
+    key = jax.random.PRNGKey(2)
+    path = sims.loop_path(num_steps, (30.0, 30.0), (15.9, 15.9), 0.5)
+    dense = sims.loop_path(720, (30.0, 30.0), (15.9, 15.9), 0.14)
+    forest = sims.random_forest(jax.random.PRNGKey(3), 80, (60.0, 60.0), keep_clear=dense[:, :2])
+    build = lambda k, runs, p, **kw: sims.build_scenario(k, forest, p, runs, **kw)
+    first, run, _ = timed(lambda k: build(k, num_runs, path), key)
+    print(f"analytic scenario, {num_runs} runs x {num_steps} steps, 80 trees, K=16: "
+          f"compile+first {first:.2f} s, run {run:.2f} s")
+    world = sims.world_from_forest(forest)
+    short = path[:lidar_steps + 1]
+    first, run, _ = timed(lambda k: build(k, lidar_runs, short, source="lidar", world=world),
+                          key)
+    scans = lidar_runs * lidar_steps
+    print(f"lidar scenario (1440 beams, culled, kasa), {lidar_runs} runs x "
+          f"{lidar_steps} steps: compile+first {first:.2f} s, run {run:.2f} s "
+          f"({scans / run:.0f} scan+detect/s); extrapolated linearly to 1000 x 200: "
+          f"{run * 1000 * 200 / scans:.0f} s")
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--quick", action="store_true", help="smaller sizes")
+    args = parser.parse_args()
+    print(f"jax {jax.__version__}, devices {jax.devices()}")
+    bench_scans(64 if args.quick else 256)
+    if args.quick:
+        bench_scenarios(100, 200, 1, 20)
+    else:
+        bench_scenarios(1000, 200, 4, 50)
+
+
+if __name__ == "__main__":
+    main()
