@@ -382,14 +382,17 @@ def _step(config: FilterConfig, key, state: FilterState, params: Params, control
     return new_state, info
 
 
-@functools.lru_cache(maxsize=None)
 def make_filter(config: FilterConfig) -> Filter:
     """Build the filter for a static config. Cached: one Filter (and one trace) per config.
 
     Raises:
       TypeError / ValueError naming the offending field for an impossible config.
     """
-    _check_config(config)
+    return _make_filter_cached(_check_config(config))
+
+
+@functools.lru_cache(maxsize=None)
+def _make_filter_cached(config: FilterConfig) -> Filter:
     return Filter(config, functools.partial(_init, config), functools.partial(_step, config))
 
 

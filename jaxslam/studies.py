@@ -371,6 +371,7 @@ def _run_metrics(config: StudyConfig, key, params: Params, controls, observation
     gospa = metrics.gospa(est.landmark_mean, est.active, scenario.tree_centres,
                           scenario.tree_seen, config.gospa_cutoff)
     rpe_translation, rpe_rotation = metrics.rpe(trace.mean_pose, truth, delta=1)
+    diameter_error, num_diameters = _diameter_error(est, world, config.map_match_threshold)
     pose_mean, pose_cov = metrics.particle_pose_moments(final.particles.pose, final.log_weight)
     values = dict(
         final_pose_error=final_error,
@@ -388,6 +389,8 @@ def _run_metrics(config: StudyConfig, key, params: Params, controls, observation
         gospa=gospa.distance,
         pose_nees=metrics.pose_nees(pose_mean, pose_cov + 1e-9 * jnp.eye(3), truth[-1]),
         diverged=final_error > config.divergence_threshold,
+        diameter_error=diameter_error,
+        num_diameters=num_diameters,
         min_ess=jnp.min(trace.ess),
         num_resampled=jnp.sum(trace.resampled).astype(jnp.int32),
         num_dropped_births=jnp.sum(trace.num_dropped_births).astype(jnp.int32),
@@ -399,6 +402,18 @@ def _run_metrics(config: StudyConfig, key, params: Params, controls, observation
                    landmark_cov=est.landmark_cov, landmark_radius=est.landmark_radius,
                    active=est.active)
     return values, position_error, example
+
+
+def _diameter_error(est, world: RunBatch, threshold):
+    """Mean |2 r_landmark - 2 r_tree| [m] over landmarks matched to a tree that carry a
+    measured radius (> 0), and their count. 0 when there are none (check the count)."""
+    tree = metrics.match_landmarks(est.landmark_mean, est.active, world.tree_centres,
+                                   world.tree_seen, threshold)
+    measured = (tree >= 0) & (est.landmark_radius > 0)
+    error = 2.0 * jnp.abs(est.landmark_radius - world.tree_radii[jnp.clip(tree, 0)])
+    count = jnp.sum(measured)
+    return (jnp.sum(jnp.where(measured, error, 0.0)) / jnp.maximum(count, 1),
+            count.astype(jnp.int32))
 
 
 def _chunk_fn(config: StudyConfig):

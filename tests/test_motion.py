@@ -1,0 +1,286 @@
+"""Motion models against plain NumPy float64 references: the rot1-trans-rot2 decomposition,
+seed 000 Eq. (1) with Table 1 numbers, sampling moments over many keys, the log-density, the
+velocity (arc) and Ackermann models against fine-step Euler integration of their kinematics
+(Victoria Park README), the stationary-robot degeneracy, jit and vmap."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxslam import motion
+from jaxslam.types import default_params
+
+# Seed 000 Table 1: rows (rot1, trans, rot2), columns (translation, rotation, constant).
+TABLE_1 = np.array([[0.0, 0.06, 0.0002], [0.02, 0.006, 0.00003], [0.0, 0.06, 0.0003]])
+LOG_2PI = np.log(2 * np.pi)
+
+
+# ---------------------------------------------------------------------------------------------
+# NumPy float64 references
+
+
+def ref_wrap(angle):
+    return (np.asarray(angle, np.float64) + np.pi) % (2 * np.pi) - np.pi
+
+
+def ref_odometry(pose_a, pose_b, min_translation):
+    dx, dy = pose_b[0] - pose_a[0], pose_b[1] - pose_a[1]
+    trans = np.hypot(dx, dy)
+    rot1 = ref_wrap(np.arctan2(dy, dx) - pose_a[2]) if trans >= min_translation else 0.0
+    rot2 = ref_wrap(pose_b[2] - pose_a[2] - rot1)
+    return np.array([rot1, trans, rot2])
+
+
+def ref_std(odometry, table=TABLE_1):
+    """Seed 000 Eq. (1): sigma = a |trans| + b |rot| + c; the translation's rot is |r1|+|r2|."""
+    r1, t, r2 = np.abs(odometry)
+    rots = (r1, r1 + r2, r2)
+    return np.array([table[i, 0] * t + table[i, 1] * rots[i] + table[i, 2] for i in range(3)])
+
+
+def ref_log_density(pose_prev, pose_next, odometry, min_translation, table=TABLE_1):
+    true = ref_odometry(pose_prev, pose_next, min_translation)
+    std = ref_std(odometry, table)
+    diff = true - odometry
+    diff[0], diff[2] = ref_wrap(diff[0]), ref_wrap(diff[2])
+    log_move = np.sum(-0.5 * (diff / std) ** 2 - np.log(std) - 0.5 * LOG_2PI)
+    return log_move - np.log(max(true[1], min_translation))
+
+
+def euler_velocity(pose, speed, yaw_rate, dt, steps=200_000):
+    """Explicit Euler of x' = v cos th, y' = v sin th, th' = w (vectorised over the steps)."""
+    h = dt / steps
+    theta = pose[2] + yaw_rate * h * np.arange(steps)
+    return np.array([pose[0] + h * speed * np.sum(np.cos(theta)),
+                     pose[1] + h * speed * np.sum(np.sin(theta)),
+                     ref_wrap(pose[2] + yaw_rate * dt)])
+
+
+def euler_ackermann(pose, speed, steering, dt, wheelbase=2.83, offset=0.76, fwd=3.78,
+                    left=0.50, steps=200_000):
+    """Victoria Park README equations (laser pose), explicit Euler."""
+    vc = speed / (1.0 - np.tan(steering) * offset / wheelbase)
+    rate = vc / wheelbase * np.tan(steering)
+    h = dt / steps
+    phi = pose[2] + rate * h * np.arange(steps)
+    x_dot = vc * np.cos(phi) - rate * (fwd * np.sin(phi) + left * np.cos(phi))
+    y_dot = vc * np.sin(phi) + rate * (fwd * np.cos(phi) - left * np.sin(phi))
+    return np.array([pose[0] + h * np.sum(x_dot), pose[1] + h * np.sum(y_dot),
+                     ref_wrap(pose[2] + rate * dt)])
+
+
+@pytest.fixture(scope="module")
+def params():
+    return default_params(dtype=jnp.float64)
+
+
+@pytest.fixture(scope="module")
+def rng():
+    return np.random.default_rng(1)
+
+
+def angle_close(actual, expected, atol):
+    np.testing.assert_allclose(ref_wrap(np.asarray(actual) - expected), 0.0, atol=atol)
+
+
+# ---------------------------------------------------------------------------------------------
+# Decomposition
+
+
+def test_odometry_from_poses_vs_reference_and_round_trip(params, rng):
+    prev = np.stack([rng.uniform(-5, 5, 50), rng.uniform(-5, 5, 50), rng.uniform(-3, 3, 50)], 1)
+    nxt = prev + np.stack([rng.uniform(-1, 1, 50), rng.uniform(-1, 1, 50),
+                           rng.uniform(-1, 1, 50)], 1)
+    odo = np.asarray(motion.odometry_from_poses(jnp.asarray(prev), jnp.asarray(nxt),
+                                                params.min_translation))
+    min_translation = float(params.min_translation)
+    ref = np.stack([ref_odometry(a, b, min_translation) for a, b in zip(prev, nxt)])
+    np.testing.assert_allclose(odo[:, 1], ref[:, 1], rtol=1e-12)
+    angle_close(odo[:, 0], ref[:, 0], 1e-12)
+    angle_close(odo[:, 2], ref[:, 2], 1e-12)
+    back = np.asarray(motion.apply_odometry(jnp.asarray(prev), jnp.asarray(odo)))
+    np.testing.assert_allclose(back[:, :2], nxt[:, :2], atol=1e-12)
+    angle_close(back[:, 2], nxt[:, 2], 1e-12)
+
+
+def test_apply_odometry_jit_vmap(rng):
+    pose = jnp.asarray(rng.normal(size=(7, 3)))
+    odo = jnp.asarray(rng.normal(size=(7, 3)))
+    eager = motion.apply_odometry(pose, odo)
+    np.testing.assert_allclose(np.asarray(jax.jit(motion.apply_odometry)(pose, odo)),
+                               np.asarray(eager), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(jax.vmap(motion.apply_odometry)(pose, odo)),
+                               np.asarray(eager), atol=1e-12)
+
+
+def test_stationary_robot_jitter_is_a_pure_turn(params, rng):
+    """Seed 000 degeneracy: a parked robot whose pose jitters by millimetres (and a few mrad)
+    must give rot1 = 0 (not the angle of the jitter) and small finite stds."""
+    base = np.array([3.0, -2.0, 0.7])
+    jitter = np.stack([rng.uniform(-3e-3, 3e-3, 200), rng.uniform(-3e-3, 3e-3, 200),
+                       rng.uniform(-2e-3, 2e-3, 200)], 1)
+    odo = motion.odometry_from_poses(jnp.asarray(np.broadcast_to(base, jitter.shape)),
+                                     jnp.asarray(base + jitter), params.min_translation)
+    odo = np.asarray(odo)
+    np.testing.assert_array_equal(odo[:, 0], 0.0)
+    angle_close(odo[:, 2], jitter[:, 2], 1e-12)
+    std = np.asarray(motion.odometry_std(jnp.asarray(odo), params))
+    assert np.all(np.isfinite(std))
+    # With rot1 = 0: sigma_trans <= 0.02 * 4.3 mm + 0.006 * 2e-3 + 3e-5 < 0.2 mm, instead of
+    # up to b2 * pi ~ 19 mm when rot1 is the angle of the jitter.
+    assert np.all(std[:, 1] < 2e-4), std[:, 1].max()
+    assert np.all(std[:, 0] < 1e-3) and np.all(std[:, 2] < 1e-3)
+
+
+def test_moving_robot_keeps_rot1(params):
+    odo = np.asarray(motion.odometry_from_poses(jnp.asarray([0.0, 0.0, 0.0]),
+                                                jnp.asarray([0.0, 0.5, 0.0]),
+                                                params.min_translation))
+    np.testing.assert_allclose(odo, [np.pi / 2, 0.5, -np.pi / 2], atol=1e-12)
+
+
+def test_odometry_from_relative_gradient_finite_at_zero(params):
+    grad = jax.grad(lambda d: jnp.sum(motion.odometry_from_relative(d, params.min_translation)))(
+        jnp.zeros(3))
+    assert np.all(np.isfinite(np.asarray(grad)))
+
+
+# ---------------------------------------------------------------------------------------------
+# Eq. (1) and sampling
+
+
+def test_default_params_are_table_1(params):
+    np.testing.assert_array_equal(np.asarray(params.rot1_noise), TABLE_1[0])
+    np.testing.assert_array_equal(np.asarray(params.trans_noise), TABLE_1[1])
+    np.testing.assert_array_equal(np.asarray(params.rot2_noise), TABLE_1[2])
+
+
+def test_odometry_std_is_eq_1(params, rng):
+    odo = np.stack([rng.uniform(-np.pi, np.pi, 40), rng.uniform(-2, 2, 40),
+                    rng.uniform(-np.pi, np.pi, 40)], 1)
+    out = np.asarray(motion.odometry_std(jnp.asarray(odo), params))
+    np.testing.assert_allclose(out, np.stack([ref_std(o) for o in odo]), rtol=1e-12)
+    # A worked case by hand: rot1 = 0.1, trans = 1, rot2 = -0.2.
+    np.testing.assert_allclose(
+        np.asarray(motion.odometry_std(jnp.asarray([0.1, 1.0, -0.2]), params)),
+        [0.06 * 0.1 + 0.0002, 0.02 + 0.006 * 0.3 + 0.00003, 0.06 * 0.2 + 0.0003], rtol=1e-12)
+
+
+@pytest.mark.parametrize("odometry", [(0.3, 1.2, -0.4), (0.0, 0.0, 0.05)])
+def test_sample_odometry_moments(params, odometry):
+    """Mean within 4 standard errors (sigma / sqrt(n)); std within 4 standard errors of the
+    sample std (sigma / sqrt(2 n))."""
+    n = 40_000
+    odo = jnp.asarray(odometry, jnp.float64)
+    keys = jax.random.split(jax.random.key(7), n)
+    draws = np.asarray(jax.jit(jax.vmap(motion.sample_odometry, in_axes=(0, None, None)))(
+        keys, odo, params))
+    sigma = ref_std(np.asarray(odometry))
+    mean_err = np.abs(draws.mean(0) - np.asarray(odometry))
+    assert np.all(mean_err < 4 * sigma / np.sqrt(n)), (mean_err, sigma)
+    std_err = np.abs(draws.std(0) - sigma)
+    assert np.all(std_err < 4 * sigma / np.sqrt(2 * n)), (std_err, sigma)
+
+
+def test_sample_motion_pose_moments_and_vmap(params):
+    """Poses from sample_motion: mean and covariance equal apply_odometry of the reference move
+    samples (same keys would be implementation-dependent, so compare moments: 4 SE)."""
+    n = 40_000
+    pose = jnp.asarray([1.0, 2.0, 0.5])
+    control = jnp.asarray([0.2, 1.0, -0.1])
+    keys = jax.random.split(jax.random.key(3), n)
+    draws = np.asarray(jax.vmap(motion.sample_motion, in_axes=(0, None, None, None))(
+        keys, pose, control, params))
+    rng = np.random.default_rng(5)
+    sigma = ref_std(np.asarray(control))
+    moves = np.asarray(control) + rng.normal(size=(n, 3)) * sigma
+    ref = np.stack([1.0 + moves[:, 1] * np.cos(0.5 + moves[:, 0]),
+                    2.0 + moves[:, 1] * np.sin(0.5 + moves[:, 0]),
+                    0.5 + moves[:, 0] + moves[:, 2]], 1)
+    se = draws.std(0) * np.sqrt(2.0 / n)  # standard error of a difference of two means
+    assert np.all(np.abs(draws.mean(0) - ref.mean(0)) < 4 * se)
+    np.testing.assert_allclose(draws.std(0), ref.std(0), rtol=4 * np.sqrt(1.0 / n))
+    # Different keys give different draws; the same key the same draw.
+    assert len(np.unique(draws[:, 0])) == n
+    again = motion.sample_motion(keys[0], pose, control, params)
+    np.testing.assert_array_equal(np.asarray(again), draws[0])
+
+
+def test_motion_log_density_vs_reference(params, rng):
+    control = np.array([0.25, 0.8, -0.3])
+    prev = np.array([1.0, -1.0, 0.4])
+    keys = jax.random.split(jax.random.key(11), 30)
+    poses = np.asarray(jax.vmap(motion.sample_motion, in_axes=(0, None, None, None))(
+        keys, jnp.asarray(prev), jnp.asarray(control), params))
+    fn = jax.jit(jax.vmap(motion.motion_log_density, in_axes=(None, 0, None, None)))
+    out = np.asarray(fn(jnp.asarray(prev), jnp.asarray(poses), jnp.asarray(control), params))
+    min_translation = float(params.min_translation)
+    ref = np.array([ref_log_density(prev, p, control, min_translation) for p in poses])
+    np.testing.assert_allclose(out, ref, rtol=1e-9, atol=1e-9)
+    eager = motion.motion_log_density(jnp.asarray(prev), jnp.asarray(poses[0]),
+                                      jnp.asarray(control), params)
+    np.testing.assert_allclose(float(eager), ref[0], rtol=1e-9)
+
+
+def test_motion_log_density_integrates_to_one(params):
+    """Importance sampling: E_q[p / q] = 1 with q a broad Gaussian over the pose. Tolerance:
+    4 Monte Carlo standard errors of the estimate plus 1% (the linear-Gaussian move density
+    neglects negative translations and angle wrap)."""
+    n = 200_000
+    control = np.array([0.2, 1.0, -0.1])
+    prev = np.zeros(3)
+    mean = np.array([np.cos(0.2), np.sin(0.2), 0.1])
+    std = np.array([0.06, 0.06, 0.05])
+    rng = np.random.default_rng(2)
+    poses = mean + rng.normal(size=(n, 3)) * std
+    log_q = np.sum(-0.5 * ((poses - mean) / std) ** 2 - np.log(std) - 0.5 * LOG_2PI, axis=1)
+    log_p = np.asarray(jax.jit(jax.vmap(motion.motion_log_density,
+                                        in_axes=(None, 0, None, None)))(
+        jnp.asarray(prev), jnp.asarray(poses), jnp.asarray(control), params))
+    ratio = np.exp(log_p - log_q)
+    estimate, se = ratio.mean(), ratio.std() / np.sqrt(n)
+    assert abs(estimate - 1.0) < 4 * se + 0.01, (estimate, se)
+
+
+# ---------------------------------------------------------------------------------------------
+# Velocity and Ackermann models against fine-step Euler
+
+
+@pytest.mark.parametrize("speed,yaw_rate,dt", [(2.0, 0.5, 1.0), (1.0, -1.3, 0.5),
+                                               (1.5, 1e-9, 0.8), (0.0, 0.4, 1.0)])
+def test_velocity_model_vs_euler(params, speed, yaw_rate, dt):
+    pose = np.array([0.5, -1.0, 2.9])
+    control = jnp.asarray([speed, yaw_rate, dt])
+    out = np.asarray(motion.predict_pose(jnp.asarray(pose), control, params, "velocity"))
+    ref = euler_velocity(pose, speed, yaw_rate, dt)
+    np.testing.assert_allclose(out[:2], ref[:2], atol=1e-4)  # Euler error ~ v w dt h / 2
+    angle_close(out[2], ref[2], 1e-9)
+
+
+@pytest.mark.parametrize("speed,steering,dt", [(3.0, 0.2, 0.5), (2.0, -0.35, 0.25),
+                                               (1.0, 0.0, 1.0)])
+def test_ackermann_model_vs_euler(params, speed, steering, dt):
+    pose = np.array([10.0, 4.0, -0.8])
+    control = jnp.asarray([speed, steering, dt])
+    out = np.asarray(motion.predict_pose(jnp.asarray(pose), control, params, "ackermann"))
+    ref = euler_ackermann(pose, speed, steering, dt)
+    np.testing.assert_allclose(out[:2], ref[:2], atol=1e-4)
+    angle_close(out[2], ref[2], 1e-9)
+
+
+def test_motion_models_jit_vmap(params):
+    poses = jnp.asarray([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0], [-1.0, 0.5, -2.0]])
+    controls = jnp.asarray([[2.0, 0.3, 0.5], [1.0, -0.1, 0.2], [0.5, 0.0, 1.0]])
+    for model in ("velocity", "ackermann"):
+        eager = np.stack([np.asarray(motion.predict_pose(p, c, params, model))
+                          for p, c in zip(poses, controls)])
+        mapped = jax.jit(jax.vmap(lambda p, c, m=model: motion.predict_pose(p, c, params, m)))(
+            poses, controls)
+        np.testing.assert_allclose(np.asarray(mapped), eager, atol=1e-12)
+        batched = motion.predict_pose(poses, controls, params, model)
+        np.testing.assert_allclose(np.asarray(batched), eager, atol=1e-12)
+
+
+def test_unknown_motion_model_raises(params):
+    with pytest.raises(ValueError, match="motion_model"):
+        motion.control_to_odometry(jnp.zeros(3), params, "bicycle")
