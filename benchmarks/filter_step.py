@@ -62,6 +62,8 @@ def bench_step(num_particles, max_landmarks, max_obs, association="stable",
     tick = time.perf_counter()
     compiled = step.lower(key, state, params, control, obs).compile()
     compile_s = time.perf_counter() - tick
+    memory = compiled.memory_analysis()
+    temp_mib = getattr(memory, "temp_size_in_bytes", 0) / 2**20 if memory is not None else 0.0
     out = jax.block_until_ready(compiled(key, state, params, control, obs))
     times = []
     for i in range(repeats):
@@ -75,8 +77,9 @@ def bench_step(num_particles, max_landmarks, max_obs, association="stable",
     print(f"step  P={num_particles:5d} M={max_landmarks:4d} K={max_obs:3d} "
           f"assoc={association:9s} proposal={proposal:11s} compile {compile_s:6.2f} s  "
           f"step {1e3 * step_s:8.3f} ms (median of {repeats}, min {1e3 * min(times):.3f})  "
-          f"{pairs / 1e6:7.1f} M pair-evals/s  rounds={int(info.match_rounds)}")
-    return compile_s, step_s
+          f"{pairs / 1e6:7.1f} M pair-evals/s  rounds={int(info.match_rounds)}  "
+          f"temp {temp_mib:.1f} MiB")
+    return compile_s, step_s, temp_mib
 
 
 def bench_batch(num_runs, chunk, num_particles, max_landmarks, max_obs, num_steps,

@@ -242,7 +242,10 @@ def _observe(config: FilterConfig, params: Params, particle: Particles, match_po
 
     birth = vis.usable_obs & ~matched_obs
     if config.association == "known":
-        birth = birth & (obs.landmark_id >= 0)
+        # A tree already in the map (even outside the matchable region) is never born twice.
+        in_map = jnp.any(particle.active[None, :]
+                         & (particle.landmark_id[None, :] == obs.landmark_id[:, None]), axis=1)
+        birth = birth & (obs.landmark_id >= 0) & ~in_map
     slot, dropped = landmarks.birth_slots(keep, birth)
     born_mean, born_cov = ekf.initialize_landmarks(particle.pose, obs.z, params)
     active = keep.at[slot].set(True, mode="drop")
