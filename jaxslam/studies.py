@@ -97,10 +97,11 @@ class StudyConfig:
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"study {name}={value!r}; expected a positive integer")
         params_fields = set(Params._fields)
-        for key, _ in tuple(self.params) + tuple(self.sweep):
-            if key not in params_fields:
-                raise ValueError(f"params.{key} is not a filter parameter; expected one of "
-                                 f"{sorted(params_fields)}")
+        for section, items in (("params", self.params), ("sweep", self.sweep)):
+            for key, _ in items:
+                if key not in params_fields:
+                    raise ValueError(f"{section}.{key} is not a filter parameter; expected one "
+                                     f"of {sorted(params_fields)}")
 
     @property
     def conditions(self) -> list[dict[str, Any]]:
@@ -545,6 +546,21 @@ def _chunk_rows(config, start, stop, values, seconds) -> dict:
     return rows
 
 
+class ChunkOutput(NamedTuple):
+    """What ``_ChunkRunner`` computes for runs [start, stop), padded to its chunk size Rp.
+
+    scenario: the RunBatch of the chunk; values: metric name -> (G, Rp); errors: (G, Rp, T)
+    position error per step; example: run traces and final map, leaves (G, Rp, ...);
+    seconds: wall time of the filter call.
+    """
+
+    scenario: RunBatch
+    values: dict
+    errors: Any
+    example: dict
+    seconds: float
+
+
 class _ChunkRunner:
     """Simulates and filters one chunk of runs; compiles once; shards runs over devices.
 
@@ -593,15 +609,16 @@ class _ChunkRunner:
         values, errors, example = jax.block_until_ready(self.compiled(*args))
         seconds = time.perf_counter() - tick
         self.filter_seconds += seconds
-        return scenario, values, errors, example, seconds
+        return ChunkOutput(scenario, values, errors, example, seconds)
 
 
-def run_study(config: StudyConfig, out_dir, progress: bool = True) -> StudyResult:
-    """Run (or resume) a study; see the module docstring for what lands in ``out_dir``."""
-    import pyarrow as pa
-    import pyarrow.parquet as pq
-    from tqdm.auto import tqdm
+def open_study(config: StudyConfig, out_dir) -> list[tuple[int, int]]:
+    """Create or check ``out_dir`` for ``config``, warn about foreign files, and return the
+    run ranges [start, stop) of the chunks not yet on disk.
 
+    Raises StudyError for a different study in the folder or a damaged chunk, before anything
+    is computed. Every backend starts here, so chunk names and resume rules are shared.
+    """
     out_dir = pathlib.Path(out_dir)
     _prepare_out_dir(config, out_dir)
     strangers = foreign_files(out_dir)
@@ -609,24 +626,44 @@ def run_study(config: StudyConfig, out_dir, progress: bool = True) -> StudyResul
         warnings.warn(f"{out_dir} holds files this study did not write (left untouched): "
                       f"{strangers}")
     num_conditions = len(config.conditions)
+    bounds = [(start, min(start + config.chunk_size, config.num_runs))
+              for start in range(0, config.num_runs, config.chunk_size)]
+    return [(start, stop) for start, stop in bounds
+            if not _existing_chunk_ok(out_dir / _chunk_name(start, stop), start, stop,
+                                      num_conditions)]
+
+
+def write_chunk(out_dir, config: StudyConfig, start: int, stop: int,
+                output: ChunkOutput) -> None:
+    """Write the files of the finished runs [start, stop): traces, the example run (first
+    chunk only), then the chunk file. Each write is atomic and the chunk file comes last, so
+    its presence marks the chunk (and its traces) done; safe from any process or host that
+    shares the folder."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    out_dir = pathlib.Path(out_dir)
+    rows = _chunk_rows(config, start, stop, output.values, output.seconds)
+    errors = np.asarray(output.errors)
+    np_errors = errors[:, :stop - start].reshape(-1, errors.shape[-1])
+    _atomic_write(out_dir / f"traces-{start:06d}-{stop:06d}.npz",
+                  lambda p: _save_npz(p, run_id=rows["run_id"], condition=rows["condition"],
+                                      pose_error=np_errors))
+    if start == 0:
+        _write_example(out_dir, output.scenario, output.example)
+    _atomic_write(out_dir / _chunk_name(start, stop), lambda p: pq.write_table(pa.table(rows), p))
+
+
+def run_study(config: StudyConfig, out_dir, progress: bool = True) -> StudyResult:
+    """Run (or resume) a study; see the module docstring for what lands in ``out_dir``."""
+    from tqdm.auto import tqdm
+
+    out_dir = pathlib.Path(out_dir)
+    pending = open_study(config, out_dir)
     runner = _ChunkRunner(config)
-    starts = list(range(0, config.num_runs, config.chunk_size))
-    bar = tqdm(starts, desc=f"study {config.name}", unit="chunk", disable=not progress)
-    for start in bar:
-        stop = min(start + config.chunk_size, config.num_runs)
-        path = out_dir / _chunk_name(start, stop)
-        if _existing_chunk_ok(path, start, stop, num_conditions):
-            continue
-        scenario, values, errors, example, seconds = runner(start, stop)
-        rows = _chunk_rows(config, start, stop, values, seconds)
-        np_errors = np.asarray(errors)[:, :stop - start].reshape(-1, errors.shape[-1])
-        _atomic_write(out_dir / f"traces-{start:06d}-{stop:06d}.npz",
-                      lambda p: _save_npz(p, run_id=rows["run_id"], condition=rows["condition"],
-                                          pose_error=np_errors))
-        if start == 0:
-            _write_example(out_dir, scenario, example)
-        # The chunk file is written last: its presence marks the chunk (and its traces) done.
-        _atomic_write(path, lambda p: pq.write_table(pa.table(rows), p))
+    bar = tqdm(pending, desc=f"study {config.name}", unit="chunk", disable=not progress)
+    for start, stop in bar:
+        write_chunk(out_dir, config, start, stop, runner(start, stop))
         bar.set_postfix(runs=stop, filter_s=f"{runner.filter_seconds:.1f}")
     table = load_results(out_dir)
     summarize_study(out_dir, table)
