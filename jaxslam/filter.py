@@ -23,7 +23,6 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jax.scipy.special import logsumexp
 
 from jaxslam import association, ekf, landmarks, proposal, resampling
 from jaxslam.geometry import wrap_angle

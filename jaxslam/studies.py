@@ -17,10 +17,7 @@ Writes are atomic (temporary file + rename); a rerun skips every chunk already o
 """
 from __future__ import annotations
 
-import dataclasses
 import datetime
-import functools
-import itertools
 import os
 import pathlib
 import subprocess
@@ -35,12 +32,12 @@ import numpy as np
 
 from jaxslam import metrics
 from jaxslam.filter import estimate, make_filter, scan_filter
-from jaxslam.types import FilterConfig, Params, default_params
+from jaxslam.study_config import (RunBatch, ScenarioConfig, StudyConfig,  # noqa: F401
+                                  demo_study_config, load_study_config,
+                                  study_config_from_dict, study_config_to_dict)
+from jaxslam.types import Params, default_params
 
 _CHUNK_PREFIX = "chunk-"
-# 1440 beams (0.25 degree): at 720, trunks beyond ~10 m get fewer than 4 points.
-LIDAR_BEAMS = 1440
-LIDAR_BEAM_NOISE = (0.0, 0.01)  # per-beam range std (per metre, constant) [m]
 _KNOWN_FILES = {"study.toml", "provenance.toml", "summary.md", "example_run.npz"}
 SUMMARY_METRICS = ("final_pose_error", "ate_rmse", "ate_rmse_aligned", "map_error",
                    "redundant", "orphan", "num_landmarks", "gospa", "pose_nees", "diverged",
@@ -51,293 +48,11 @@ class StudyError(RuntimeError):
     """A study cannot run or resume safely (foreign study in the folder, corrupt chunk...)."""
 
 
-@dataclasses.dataclass(frozen=True)
-class ScenarioConfig:
-    """The simulated world of every run (see ``sims.scenario``).
+def scenario_batch(config: StudyConfig, run_ids):
+    """Simulate the runs ``run_ids`` (``sims.batch.scenario_batch``; imports MuJoCo lazily)."""
+    from sims.batch import scenario_batch as simulate
 
-    forest: "random" or "plantation"; num_trees; size: square side [m]; path: "loop",
-    "lawnmower" or "random"; num_steps: T; step_length [m]; max_range [m] of the sensor;
-    observation_source: "analytic" (range-bearing to trunk centres with Table 2 noise) or
-    "lidar" (MJX scans + trunk detection); detection: centroid | kasa | geometric | ransac;
-    odometry_noise_scale: multiplies the Table 1 noise of the simulated odometry.
-    """
-
-    forest: str = "random"
-    num_trees: int = 80
-    size: float = 60.0
-    path: str = "loop"
-    num_steps: int = 200
-    step_length: float = 0.5
-    max_range: float = 20.0
-    observation_source: str = "analytic"
-    detection: str = "kasa"
-    odometry_noise_scale: float = 1.0
-
-
-@dataclasses.dataclass(frozen=True)
-class StudyConfig:
-    """Everything that defines a study. ``params`` are overrides of ``default_params``;
-    ``sweep`` maps Params fields to lists of values (cartesian grid of conditions)."""
-
-    name: str = "study"
-    num_runs: int = 100
-    chunk_size: int = 50
-    seed: int = 0
-    filter: FilterConfig = FilterConfig()
-    scenario: ScenarioConfig = ScenarioConfig()
-    params: tuple = ()
-    sweep: tuple = ()
-    divergence_threshold: float = 2.0
-    map_match_threshold: float = 1.0
-    gospa_cutoff: float = 2.0
-
-    def __post_init__(self):
-        for name in ("num_runs", "chunk_size"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"study {name}={value!r}; expected a positive integer")
-        params_fields = set(Params._fields)
-        for section, items in (("params", self.params), ("sweep", self.sweep)):
-            for key, _ in items:
-                if key not in params_fields:
-                    raise ValueError(f"{section}.{key} is not a filter parameter; expected one "
-                                     f"of {sorted(params_fields)}")
-
-    @property
-    def conditions(self) -> list[dict[str, Any]]:
-        """The sweep grid as a list of {param: value} (one empty dict without a sweep)."""
-        if not self.sweep:
-            return [{}]
-        names = [name for name, _ in self.sweep]
-        values = [list(vals) for _, vals in self.sweep]
-        return [dict(zip(names, combo)) for combo in itertools.product(*values)]
-
-
-# --------------------------------------------------------------------------------------------
-# Config files
-
-
-def _as_tuple_items(mapping: dict) -> tuple:
-    return tuple((k, tuple(v) if isinstance(v, list) else v) for k, v in mapping.items())
-
-
-def study_config_to_dict(config: StudyConfig) -> dict:
-    """Plain dict (TOML-ready) of a study config."""
-    out = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)
-           if f.name not in ("filter", "scenario", "params", "sweep")}
-    out["filter"] = dataclasses.asdict(config.filter)
-    out["scenario"] = dataclasses.asdict(config.scenario)
-    out["params"] = {k: list(v) if isinstance(v, tuple) else v for k, v in config.params}
-    out["sweep"] = {k: list(v) for k, v in config.sweep}
-    return out
-
-
-def _check_keys(section: str, given: dict, cls) -> None:
-    allowed = [f.name for f in dataclasses.fields(cls)]
-    for key in given:
-        if key not in allowed:
-            where = f"{section}.{key}" if section else key
-            raise ValueError(f"unknown study config key {where!r}; allowed keys"
-                             f"{' in [' + section + ']' if section else ''}: {allowed}")
-
-
-def study_config_from_dict(data: dict) -> StudyConfig:
-    """Build and validate a ``StudyConfig``; errors name the key and the allowed values."""
-    data = dict(data)
-    filter_section = dict(data.pop("filter", {}))
-    scenario_section = dict(data.pop("scenario", {}))
-    params_section = dict(data.pop("params", {}))
-    sweep_section = dict(data.pop("sweep", {}))
-    _check_keys("", data, StudyConfig)
-    _check_keys("filter", filter_section, FilterConfig)
-    _check_keys("scenario", scenario_section, ScenarioConfig)
-    _check_scenario(scenario_section)
-    for key, values in sweep_section.items():
-        if not isinstance(values, list) or not values:
-            raise ValueError(f"sweep.{key} must be a non-empty list of values; got {values!r}")
-    return StudyConfig(filter=FilterConfig(**filter_section),
-                       scenario=ScenarioConfig(**scenario_section),
-                       params=_as_tuple_items(params_section),
-                       sweep=_as_tuple_items(sweep_section), **data)
-
-
-_SCENARIO_CHOICES = {"forest": ("random", "plantation"), "path": ("loop", "lawnmower", "random"),
-                     "observation_source": ("analytic", "lidar"),
-                     "detection": ("centroid", "kasa", "geometric", "ransac")}
-
-
-def _check_scenario(section: dict) -> None:
-    for key, allowed in _SCENARIO_CHOICES.items():
-        if key in section and section[key] not in allowed:
-            raise ValueError(f"scenario.{key}={section[key]!r} is not supported; expected one of "
-                             f"{list(allowed)}")
-
-
-def _parse_value(text: str):
-    try:
-        return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
-        return text
-
-
-def load_study_config(path=None, overrides=()) -> StudyConfig:
-    """Read a study TOML (or start from the defaults) and apply "section.key=value" overrides.
-
-    Example overrides: ``num_runs=20``, ``filter.num_particles=50``, ``params.max_range=15``,
-    ``sweep.mixture_ratio=[0.0, 0.3]``.
-    """
-    data: dict = {}
-    if path is not None:
-        path = pathlib.Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"study config {str(path)!r} does not exist")
-        with open(path, "rb") as handle:
-            data = tomllib.load(handle)
-    for item in overrides:
-        if "=" not in item:
-            raise ValueError(f"override {item!r} must look like section.key=value")
-        dotted, text = item.split("=", 1)
-        *sections, key = dotted.strip().split(".")
-        target = data
-        for section in sections:
-            target = target.setdefault(section, {})
-        target[key] = _parse_value(text.strip())
-    return study_config_from_dict(data)
-
-
-def demo_study_config() -> StudyConfig:
-    """The README's main job: 64 runs on the default simulated forest, stable matching,
-    the loose boundary, P=64 particles; a few minutes on a 2-core CPU."""
-    return StudyConfig(name="demo", num_runs=64, chunk_size=32, seed=0,
-                       filter=FilterConfig(num_particles=64, max_landmarks=96, max_obs=16),
-                       scenario=ScenarioConfig(num_steps=150))
-
-
-# --------------------------------------------------------------------------------------------
-# Scenario batch (the simulator part)
-
-
-class RunBatch(NamedTuple):
-    """Scenarios of a chunk of runs. Run-dependent leaves have a leading axis R; the forest is
-    shared by every run of a study (runs differ in odometry and observation noise).
-
-    controls: (R, T, 3); observations: leaves (R, T, K, ...); truth_pose: (T+1, 3);
-    tree_centres: (N, 2); tree_radii: (N,); tree_seen: (R, N) trees observed in each run.
-    """
-
-    controls: jnp.ndarray
-    observations: Any
-    truth_pose: jnp.ndarray
-    tree_centres: jnp.ndarray
-    tree_radii: jnp.ndarray
-    tree_seen: jnp.ndarray
-
-
-def simulation_params(scenario: ScenarioConfig) -> Params:
-    """Noise of the simulated robot: Table 1 scaled by ``odometry_noise_scale``, Table 2."""
-    base = default_params(max_range=scenario.max_range)
-    scale = scenario.odometry_noise_scale
-    return base._replace(rot1_noise=base.rot1_noise * scale,
-                         trans_noise=base.trans_noise * scale,
-                         rot2_noise=base.rot2_noise * scale)
-
-
-@functools.lru_cache(maxsize=8)
-def study_world(scenario: ScenarioConfig, seed: int):
-    """The forest and true path of a study (built once, eagerly). Returns (forest, path)."""
-    from sims import forest as forest_lib
-    from sims import paths
-
-    key_forest, key_path = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(seed), 2**30))
-    size = scenario.size
-    centre = (0.5 * size, 0.5 * size)
-    path = None
-    if scenario.path == "loop":
-        radius = scenario.num_steps * scenario.step_length / (2.0 * np.pi)
-        path = paths.loop_path(scenario.num_steps, centre, (radius, radius),
-                               scenario.step_length)
-    elif scenario.path == "lawnmower":  # lanes midway between plantation rows
-        path = paths.lawnmower_path(np.arange(3.5, size - 3.0, 7.0), 0.0, size,
-                                    scenario.num_steps, scenario.step_length)
-    if scenario.forest == "plantation":
-        forest = forest_lib.plantation_forest(key_forest, num_rows=max(2, int(size // 7.0) + 1),
-                                              trees_per_row=max(2, int(size // 3.0) + 1))
-    else:
-        keep_clear = None if path is None else np.asarray(path)[:, :2]
-        forest = forest_lib.random_forest(key_forest, scenario.num_trees, (size, size),
-                                          keep_clear=keep_clear)
-    if path is None:
-        path = paths.random_smooth_path(key_path, forest.centres, scenario.num_steps,
-                                        (centre[0], centre[1], 0.0), scenario.step_length,
-                                        bounds=((0.0, 0.0), (size, size)))
-    return forest, path
-
-
-def scenario_batch(config: StudyConfig, run_ids: np.ndarray) -> RunBatch:
-    """Simulate the runs ``run_ids``: run i draws its noise from fold_in(PRNGKey(seed), i)."""
-    simulate, world = _simulator(config.scenario, config.seed, config.filter.max_obs)
-    controls, observations, seen = simulate(jnp.asarray(run_ids, jnp.uint32))
-    return world._replace(controls=controls, observations=observations, tree_seen=seen)
-
-
-@functools.lru_cache(maxsize=8)
-def _simulator(settings: ScenarioConfig, seed: int, max_obs: int):
-    """A compiled run simulator for one study world (cached: compiled once per study).
-
-    Returns (simulate(run_ids (R,)) -> (controls, observations, tree_seen (R, N)), RunBatch of
-    the shared world). A tree counts as seen in a run when it was observed at least once
-    (analytic source, which knows tree ids) or passed within range of the path (lidar).
-    """
-    from sims import scenario as scenario_lib
-    from sims.forest import world_from_forest
-    from sims.paths import noisy_odometry, true_moves
-
-    forest, path = study_world(settings, seed)
-    params = simulation_params(settings)
-    centres = jnp.asarray(forest.centres, jnp.float32)
-    radii = jnp.asarray(forest.radii, jnp.float32)
-    path = jnp.asarray(path, jnp.float32)
-    moves = true_moves(path, params.min_translation)
-    gap = path[:, None, :2] - centres[None]
-    in_range = jnp.min(jnp.hypot(gap[..., 0], gap[..., 1]), axis=0) <= settings.max_range
-    if settings.observation_source == "lidar":
-        # Every run follows the same true path through the same forest, so the noise-free
-        # scans are cast once (T scans) and each run only adds its own beam noise and detects.
-        from jaxslam.detect import detect_trunks
-        from sims.lidar import add_range_noise, beam_angles, scan_2d_full
-
-        lidar_world = world_from_forest(forest)
-        clean_scans = jax.lax.map(
-            lambda pose: scan_2d_full(lidar_world, pose, LIDAR_BEAMS, settings.max_range).ranges,
-            path[1:])
-        angles = jnp.asarray(beam_angles(LIDAR_BEAMS), jnp.float32)
-
-    def observe(key, pose, step):
-        if settings.observation_source == "analytic":
-            return scenario_lib.analytic_observations(key, pose, centres, radii, params, max_obs)
-        key_noise, key_detect = jax.random.split(key)
-        ranges = add_range_noise(key_noise, clean_scans[step], settings.max_range,
-                                 LIDAR_BEAM_NOISE)
-        return detect_trunks(ranges, angles, settings.detection, max_obs=max_obs,
-                             max_range=settings.max_range, min_range=float(params.min_range),
-                             key=key_detect if settings.detection == "ransac" else None)
-
-    def one_run(run_id):
-        run_key = jax.random.fold_in(jax.random.PRNGKey(seed), run_id)
-        key_odometry, key_obs = jax.random.split(jax.random.fold_in(run_key, 0))
-        controls = noisy_odometry(key_odometry, moves, params)
-        steps = jnp.arange(moves.shape[0])
-        observations = jax.vmap(observe)(jax.random.split(key_obs, moves.shape[0]), path[1:],
-                                         steps)
-        if settings.observation_source == "analytic":
-            ids = jnp.where(observations.valid, observations.landmark_id, centres.shape[0])
-            seen = jnp.zeros(centres.shape[0], bool).at[ids.ravel()].set(True, mode="drop")
-        else:
-            seen = in_range
-        return controls, observations, seen
-
-    world = RunBatch(None, None, path, centres, radii, in_range)
-    return jax.jit(jax.vmap(one_run)), world
+    return simulate(config, run_ids)
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,0 +1,127 @@
+"""Batches of simulated runs for Monte Carlo studies (``jaxslam.studies`` calls this lazily,
+so the library itself never imports MuJoCo).
+
+Every run of a study follows the same true path through the same forest; runs differ in
+odometry and observation noise, run i drawing from ``fold_in(PRNGKey(seed), i)``.
+"""
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxslam.study_config import RunBatch, ScenarioConfig, StudyConfig
+from jaxslam.types import Params, default_params
+
+# 1440 beams (0.25 degree): at 720, trunks beyond ~10 m get fewer than 4 points.
+LIDAR_BEAMS = 1440
+LIDAR_BEAM_NOISE = (0.0, 0.01)  # per-beam range std (per metre, constant) [m]
+
+
+def simulation_params(scenario: ScenarioConfig) -> Params:
+    """Noise of the simulated robot: Table 1 scaled by ``odometry_noise_scale``, Table 2."""
+    base = default_params(max_range=scenario.max_range)
+    scale = scenario.odometry_noise_scale
+    return base._replace(rot1_noise=base.rot1_noise * scale,
+                         trans_noise=base.trans_noise * scale,
+                         rot2_noise=base.rot2_noise * scale)
+
+
+@functools.lru_cache(maxsize=8)
+def study_world(scenario: ScenarioConfig, seed: int):
+    """The forest and true path of a study (built once, eagerly). Returns (forest, path)."""
+    from sims import forest as forest_lib
+    from sims import paths
+
+    key_forest, key_path = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(seed), 2**30))
+    size = scenario.size
+    centre = (0.5 * size, 0.5 * size)
+    path = None
+    if scenario.path == "loop":
+        radius = scenario.num_steps * scenario.step_length / (2.0 * np.pi)
+        path = paths.loop_path(scenario.num_steps, centre, (radius, radius),
+                               scenario.step_length)
+    elif scenario.path == "lawnmower":  # lanes midway between plantation rows
+        path = paths.lawnmower_path(np.arange(3.5, size - 3.0, 7.0), 0.0, size,
+                                    scenario.num_steps, scenario.step_length)
+    if scenario.forest == "plantation":
+        forest = forest_lib.plantation_forest(key_forest, num_rows=max(2, int(size // 7.0) + 1),
+                                              trees_per_row=max(2, int(size // 3.0) + 1))
+    else:
+        keep_clear = None if path is None else np.asarray(path)[:, :2]
+        forest = forest_lib.random_forest(key_forest, scenario.num_trees, (size, size),
+                                          keep_clear=keep_clear)
+    if path is None:
+        path = paths.random_smooth_path(key_path, forest.centres, scenario.num_steps,
+                                        (centre[0], centre[1], 0.0), scenario.step_length,
+                                        bounds=((0.0, 0.0), (size, size)))
+    return forest, path
+
+
+def scenario_batch(config: StudyConfig, run_ids: np.ndarray) -> RunBatch:
+    """Simulate the runs ``run_ids``: run i draws its noise from fold_in(PRNGKey(seed), i)."""
+    simulate, world = _simulator(config.scenario, config.seed, config.filter.max_obs)
+    controls, observations, seen = simulate(jnp.asarray(run_ids, jnp.uint32))
+    return world._replace(controls=controls, observations=observations, tree_seen=seen)
+
+
+@functools.lru_cache(maxsize=8)
+def _simulator(settings: ScenarioConfig, seed: int, max_obs: int):
+    """A compiled run simulator for one study world (cached: compiled once per study).
+
+    Returns (simulate(run_ids (R,)) -> (controls, observations, tree_seen (R, N)), RunBatch of
+    the shared world). A tree counts as seen in a run when it was observed at least once
+    (analytic source, which knows tree ids) or passed within range of the path (lidar).
+    """
+    from sims import scenario as scenario_lib
+    from sims.forest import world_from_forest
+    from sims.paths import noisy_odometry, true_moves
+
+    forest, path = study_world(settings, seed)
+    params = simulation_params(settings)
+    centres = jnp.asarray(forest.centres, jnp.float32)
+    radii = jnp.asarray(forest.radii, jnp.float32)
+    path = jnp.asarray(path, jnp.float32)
+    moves = true_moves(path, params.min_translation)
+    gap = path[:, None, :2] - centres[None]
+    in_range = jnp.min(jnp.hypot(gap[..., 0], gap[..., 1]), axis=0) <= settings.max_range
+    if settings.observation_source == "lidar":
+        # Every run follows the same true path through the same forest, so the noise-free
+        # scans are cast once (T scans) and each run only adds its own beam noise and detects.
+        from jaxslam.detect import detect_trunks
+        from sims.lidar import add_range_noise, beam_angles, scan_2d_full
+
+        lidar_world = world_from_forest(forest)
+        clean_scans = jax.lax.map(
+            lambda pose: scan_2d_full(lidar_world, pose, LIDAR_BEAMS, settings.max_range).ranges,
+            path[1:])
+        angles = jnp.asarray(beam_angles(LIDAR_BEAMS), jnp.float32)
+
+    def observe(key, pose, step):
+        if settings.observation_source == "analytic":
+            return scenario_lib.analytic_observations(key, pose, centres, radii, params, max_obs)
+        key_noise, key_detect = jax.random.split(key)
+        ranges = add_range_noise(key_noise, clean_scans[step], settings.max_range,
+                                 LIDAR_BEAM_NOISE)
+        return detect_trunks(ranges, angles, settings.detection, max_obs=max_obs,
+                             max_range=settings.max_range, min_range=float(params.min_range),
+                             key=key_detect if settings.detection == "ransac" else None)
+
+    def one_run(run_id):
+        run_key = jax.random.fold_in(jax.random.PRNGKey(seed), run_id)
+        key_odometry, key_obs = jax.random.split(jax.random.fold_in(run_key, 0))
+        controls = noisy_odometry(key_odometry, moves, params)
+        steps = jnp.arange(moves.shape[0])
+        observations = jax.vmap(observe)(jax.random.split(key_obs, moves.shape[0]), path[1:],
+                                         steps)
+        if settings.observation_source == "analytic":
+            ids = jnp.where(observations.valid, observations.landmark_id, centres.shape[0])
+            seen = jnp.zeros(centres.shape[0], bool).at[ids.ravel()].set(True, mode="drop")
+        else:
+            seen = in_range
+        return controls, observations, seen
+
+    world = RunBatch(None, None, path, centres, radii, in_range)
+    return jax.jit(jax.vmap(one_run)), world
