@@ -109,7 +109,8 @@ def markdown(numbers) -> str:
         "(EKF-SLAM 1.4-1.8) |",
         f"| mean / median / max error [m] | {run['mean']:.2f} / {run['median']:.2f} / "
         f"{run['max']:.2f} | |",
-        f"| dead-reckoning RMSE [m] | {run['dead_reckoning_rmse']:.1f} | |",
+        f"| dead-reckoning RMSE [m], raw / steering + {run['steering_bias']} rad | "
+        f"{run['dead_reckoning_rmse']:.1f} / {run['corrected_dead_reckoning_rmse']:.1f} | |",
         f"| final tree count (best particle) | {run['num_trees']} | 130-200 (~150 known) |",
         f"| trees updated >= 3 times | {run['num_confirmed']} | |",
         f"| compile [s] | {run['compile_s']:.1f} | |",
@@ -150,9 +151,14 @@ def main():
     steps = run.path.shape[0]
     dead_reckoning = vpm.gps_error(log.time[:steps], vpm.dead_reckoning_path(data)[:steps, :2],
                                    log.gps_time, log.gps_xy)
+    corrected = vpm.gps_error(log.time[:steps],
+                              vpm.odometry_path(vps.victoria_park_controls(data))[:steps, :2],
+                              log.gps_time, log.gps_xy)
     numbers["run"] = dict(particles=args.particles, scans=steps, rmse=run.gps.rmse,
                           mean=run.gps.mean, median=run.gps.median, max=run.gps.max,
-                          dead_reckoning_rmse=dead_reckoning.rmse, num_trees=run.num_trees,
+                          dead_reckoning_rmse=dead_reckoning.rmse,
+                          corrected_dead_reckoning_rmse=corrected.rmse,
+                          steering_bias=vps.STEERING_BIAS, num_trees=run.num_trees,
                           num_confirmed=run.num_confirmed, compile_s=run.compile_s,
                           run_s=run.run_s, mean_ess=float(run.ess.mean()))
     print("run:", numbers["run"], flush=True)

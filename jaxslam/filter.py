@@ -178,23 +178,40 @@ def _association_cost(config, obs, particle, mahalanobis, vis):
     return jnp.where(allowed, mahalanobis, jnp.inf)
 
 
-def _observe(config: FilterConfig, params: Params, particle: Particles, match_pose,
-             obs: Observations) -> _ObserveResult:
-    """Steps 2-5 of the module docstring for one particle at pose ``particle.pose``.
+class _Association(NamedTuple):
+    """Association of one particle's observations, computed at its matching pose."""
 
-    ``match_pose`` (3,) is where association is computed (the pose itself for the motion
-    proposal; the motion prediction for the observation and mixture proposals).
+    match: jnp.ndarray  # (K,) landmark slot or -1
+    rounds: jnp.ndarray  # () matching rounds
+    visibility: landmarks.Visibility
+    predicted: ekf.PredictedMeasurement  # (M,) fields, at the matching pose
+
+
+def _associate(config: FilterConfig, params: Params, particle: Particles, match_pose,
+               obs: Observations) -> _Association:
+    """Steps 2-3 of the module docstring at ``match_pose`` (3,): predictions, boundary, matching.
+
+    ``match_pose`` is the sampled pose for the motion proposal and the motion prediction x_hat
+    for the observation and mixture proposals (computed once, shared with the proposal).
     """
-    num_slots = config.max_landmarks
-    predicted_match = ekf.predict_measurements(match_pose, particle.landmark_mean,
-                                               particle.landmark_cov, params)
-    mahalanobis = ekf.mahalanobis_sq(obs.z, predicted_match)
+    predicted = ekf.predict_measurements(match_pose, particle.landmark_mean,
+                                         particle.landmark_cov, params)
+    mahalanobis = ekf.mahalanobis_sq(obs.z, predicted)
     mahalanobis = jnp.where(obs.valid[:, None] & particle.active[None, :], mahalanobis, jnp.inf)
-    vis = landmarks.visibility(obs.z, obs.valid, particle.active, predicted_match, mahalanobis,
+    vis = landmarks.visibility(obs.z, obs.valid, particle.active, predicted, mahalanobis,
                                params, config.boundary)
     cost = _association_cost(config, obs, particle, mahalanobis, vis)
     match, rounds = association.match(config.association, cost, params.association_gate,
                                       config.match_rounds)
+    return _Association(match, rounds, vis, predicted)
+
+
+def _observe(config: FilterConfig, params: Params, particle: Particles, found: _Association,
+             obs: Observations) -> _ObserveResult:
+    """Steps 4-5 of the module docstring for one particle at pose ``particle.pose``, given
+    its association ``found``."""
+    num_slots = config.max_landmarks
+    match, rounds, vis = found.match, found.rounds, found.visibility
     matched_obs = match >= 0
     slot_of_obs = jnp.where(matched_obs, match, num_slots)
     obs_of_slot = jnp.full((num_slots,), -1, jnp.int32).at[slot_of_obs].set(
@@ -203,7 +220,7 @@ def _observe(config: FilterConfig, params: Params, particle: Particles, match_po
     z_of_slot = obs.z[jnp.clip(obs_of_slot, 0)]
 
     if config.proposal == "motion":
-        predicted = predicted_match
+        predicted = found.predicted  # association was computed at this very pose
     else:
         predicted = ekf.predict_measurements(particle.pose, particle.landmark_mean,
                                              particle.landmark_cov, params)
@@ -268,34 +285,28 @@ def _observe(config: FilterConfig, params: Params, particle: Particles, match_po
 
 
 def _propose(config, key, params, particles: Particles, control, obs, ratio):
-    """Sample new poses (P, 3). Returns (poses, match poses, log-weight corrections (P,),
-    observation draws (P,) bool)."""
+    """Sample new poses and associate. Returns (poses (P, 3), association (P leading axis),
+    log-weight corrections (P,), observation draws (P,) bool)."""
     num = config.num_particles
     key_motion, key_mixture = jax.random.split(key)
     motion = config.motion_model
     motion_draw = jax.vmap(lambda k, pose: sample_motion(k, pose, control, params, motion))(
         jax.random.split(key_motion, num), particles.pose)
     if config.proposal == "motion":
-        return motion_draw, motion_draw, jnp.zeros((num,), motion_draw.dtype), jnp.zeros(num, bool)
+        found = jax.vmap(lambda particle, pose: _associate(config, params, particle, pose, obs))(
+            particles, motion_draw)
+        return motion_draw, found, jnp.zeros((num,), motion_draw.dtype), jnp.zeros(num, bool)
 
     def one(k, particle, motion_sample):
         x_hat = predict_pose(particle.pose, control, params, motion)
         pose_cov = proposal.motion_pose_covariance(particle.pose, control, params, motion)
-        predicted = ekf.predict_measurements(x_hat, particle.landmark_mean,
-                                             particle.landmark_cov, params)
-        mahalanobis = ekf.mahalanobis_sq(obs.z, predicted)
-        mahalanobis = jnp.where(obs.valid[:, None] & particle.active[None, :], mahalanobis,
-                                jnp.inf)
-        vis = landmarks.visibility(obs.z, obs.valid, particle.active, predicted, mahalanobis,
-                                   params, config.boundary)
-        cost = _association_cost(config, obs, particle, mahalanobis, vis)
-        match, _ = association.match(config.association, cost, params.association_gate,
-                                     config.match_rounds)
-        gaussian = proposal.observation_proposal(x_hat, pose_cov, obs.z, match, predicted)
+        found = _associate(config, params, particle, x_hat, obs)
+        gaussian = proposal.observation_proposal(x_hat, pose_cov, obs.z, found.match,
+                                                 found.predicted)
         pose, used_obs = proposal.mixture_sample(k, motion_sample, gaussian, ratio)
         correction = proposal.mixture_log_correction(particle.pose, pose, control, params,
                                                      motion, gaussian, ratio)
-        return pose, x_hat, correction, used_obs
+        return pose, found, correction, used_obs
 
     return jax.vmap(one)(jax.random.split(key_mixture, num), particles, motion_draw)
 
@@ -345,11 +356,11 @@ def _step(config: FilterConfig, key, state: FilterState, params: Params, control
     key_propose, key_resample = jax.random.split(key)
     obs, num_invalid = sanitize_observations(obs)
     ratio = _mixture_ratio(config, params, state)
-    poses, match_poses, correction, used_obs = _propose(
+    poses, found, correction, used_obs = _propose(
         config, key_propose, params, state.particles, control, obs, ratio)
     moved = state.particles._replace(pose=poses)
-    result = jax.vmap(lambda particle, match_pose: _observe(config, params, particle,
-                                                            match_pose, obs))(moved, match_poses)
+    result = jax.vmap(lambda particle, association_: _observe(config, params, particle,
+                                                              association_, obs))(moved, found)
     log_weight, reset = resampling.normalize_log_weights(
         state.log_weight + result.log_likelihood + correction)
 
