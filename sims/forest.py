@@ -186,8 +186,13 @@ def random_clutter(key, centres, num_bushes: int, num_logs: int, low, high,
 
 
 def forest_mjcf(forest: Forest, trunk_height: float = 6.0, sensor_height: float = 0.5,
-                ground: bool = True) -> str:
+                ground: bool = True, trunk_axes=None, trunk_heading=None) -> str:
     """MJCF text of a forest: capsule trunks standing on z = 0, bushes, logs, ground plane.
+
+    Non-circular trunks: with ``trunk_axes`` (N, 2) (cross-section semi-axes [m] at the scan
+    height) and ``trunk_heading`` (N,) (rotation of the first axis about z [rad]) the trunks
+    are vertical ellipsoids of half-height trunk_height / 2 centred at that height, scaled so
+    the horizontal cut at ``sensor_height`` is exactly that ellipse.
 
     Geom order (relied on by ``World.geom_tree``): trunks 0..N-1, bushes, logs, then the
     ground plane. Logs lie with their axis at ``sensor_height`` - 0.3 * radius so a planar scan
@@ -201,9 +206,21 @@ def forest_mjcf(forest: Forest, trunk_height: float = 6.0, sensor_height: float 
              '<material name="leaf" rgba="0.2 0.5 0.2 1"/>',
              '<material name="soil" rgba="0.4 0.35 0.3 1"/>', "</asset>", "<worldbody>"]
     static = 'contype="0" conaffinity="0"'
-    for (x, y), r in zip(centres, radii):
-        lines.append(f'<geom type="capsule" size="{r:.6f} {half - r:.6f}" '
-                     f'pos="{x:.6f} {y:.6f} {half:.6f}" material="bark" {static}/>')
+    if trunk_axes is None:
+        for (x, y), r in zip(centres, radii):
+            lines.append(f'<geom type="capsule" size="{r:.6f} {half - r:.6f}" '
+                         f'pos="{x:.6f} {y:.6f} {half:.6f}" material="bark" {static}/>')
+    else:
+        axes = np.asarray(trunk_axes, float)
+        heading = (np.zeros(len(centres)) if trunk_heading is None
+                   else np.asarray(trunk_heading, float))
+        # Cut of an ellipsoid (a, b, c) centred at height c by the plane z = h:
+        # semi-axes (a, b) * sqrt(1 - ((h - c) / c)^2).
+        shrink = np.sqrt(1.0 - ((sensor_height - half) / half) ** 2)
+        for (x, y), (a, b), yaw in zip(centres, axes / shrink, heading):
+            lines.append(f'<geom type="ellipsoid" size="{a:.6f} {b:.6f} {half:.6f}" '
+                         f'pos="{x:.6f} {y:.6f} {half:.6f}" euler="0 0 {np.degrees(yaw):.6f}" '  # MJCF: degrees
+                         f'material="bark" {static}/>')
     for (x, y), (a, b, c) in zip(np.asarray(clutter.bush_centres, float),
                                  np.asarray(clutter.bush_sizes, float)):
         lines.append(f'<geom type="ellipsoid" size="{a:.6f} {b:.6f} {c:.6f}" '
@@ -262,7 +279,8 @@ def _put(mj_model):
 
 
 def make_world(centres, radii, clutter: Clutter | None = None, trunk_height: float = 6.0,
-               sensor_height: float = 0.5, num_slots: int = 6, ground: bool = True) -> World:
+               sensor_height: float = 0.5, num_slots: int = 6, ground: bool = True,
+               trunk_axes=None, trunk_heading=None) -> World:
     """Build the MJX forest for trunks ``centres`` (N, 2) [m] and ``radii`` (N,) [m].
 
     Args:
@@ -272,6 +290,8 @@ def make_world(centres, radii, clutter: Clutter | None = None, trunk_height: flo
       sensor_height: height of the 2D scan plane [m].
       num_slots: culling slots per lidar sector and geom type (see ``sims.lidar``).
       ground: add a ground plane (hit only by downward 3D beams).
+      trunk_axes, trunk_heading: non-circular trunks as ellipsoids (see ``forest_mjcf``);
+        ``radii`` stays the ground-truth radius (e.g. the mean of the two semi-axes).
     """
     centres = jnp.asarray(centres, jnp.float32)
     radii = jnp.asarray(radii, jnp.float32)
@@ -286,7 +306,7 @@ def make_world(centres, radii, clutter: Clutter | None = None, trunk_height: flo
     clutter = empty_clutter() if clutter is None else clutter
     forest = Forest(centres, radii, clutter)
     mj_model = mujoco.MjModel.from_xml_string(forest_mjcf(forest, trunk_height, sensor_height,
-                                                          ground))
+                                                          ground, trunk_axes, trunk_heading))
     model, data = _put(mj_model)
     num_geoms = mj_model.ngeom
     geom_tree = np.full(num_geoms, -1, np.int32)
