@@ -325,7 +325,7 @@ def match(kind: str, cost, gate, max_rounds=None) -> tuple[jax.Array, jax.Array]
         never gated).
       cost: (K, M) pair costs, ``+inf`` where impossible.
       gate: () threshold above which pairs are never formed.
-      max_rounds: bound on Gale-Shapley rounds (``stable`` and ``known``); None means K * M.
+      max_rounds: bound on Gale-Shapley rounds (``stable`` and ``known``); None means K * (M + 1).
 
     Returns:
       match: (K,) int32 landmark slot per observation, -1 when unmatched.

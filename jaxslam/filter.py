@@ -62,11 +62,17 @@ class StepInfo(NamedTuple):
 
 class Filter(NamedTuple):
     """``init(initial_pose (3,)) -> FilterState``;
-    ``step(key, state, params, control (3,), obs) -> (state, StepInfo)``."""
+    ``step(key, state, params, control (3,), obs) -> (state, StepInfo)``.
 
-    config: FilterConfig
+    Unpacks as ``init, step = make_filter(config)``; ``.config`` gives the config back.
+    """
+
     init: Callable
     step: Callable
+
+    @property
+    def config(self) -> FilterConfig:
+        return self.init.args[0]
 
 
 class Estimate(NamedTuple):
@@ -241,9 +247,11 @@ def _observe(config: FilterConfig, params: Params, particle: Particles, found: _
     cov = jnp.where(matched_slot[:, None], new_cov, particle.landmark_cov)
     radius_obs = obs.radius[jnp.clip(obs_of_slot, 0)]
     count = particle.observation_count + matched_slot.astype(jnp.int32)
+    # Running mean of measured radii; a landmark with no radius yet (0) takes the first one.
+    running = particle.landmark_radius + (radius_obs - particle.landmark_radius) / jnp.maximum(
+        count, 1)
     radius = jnp.where(matched_slot & (radius_obs > 0),
-                       particle.landmark_radius
-                       + (radius_obs - particle.landmark_radius) / jnp.maximum(count, 1),
+                       jnp.where(particle.landmark_radius > 0, running, radius_obs),
                        particle.landmark_radius)
 
     missed = vis.expected & ~matched_slot & ~vis.explained
@@ -406,7 +414,7 @@ def make_filter(config: FilterConfig) -> Filter:
 
 @functools.lru_cache(maxsize=None)
 def _make_filter_cached(config: FilterConfig) -> Filter:
-    return Filter(config, functools.partial(_init, config), functools.partial(_step, config))
+    return Filter(functools.partial(_init, config), functools.partial(_step, config))
 
 
 def circular_weighted_mean_pose(pose, log_weight):
@@ -418,7 +426,11 @@ def circular_weighted_mean_pose(pose, log_weight):
 
 
 def estimate(state: FilterState) -> Estimate:
-    """Weighted mean pose and the map of the highest-weight particle."""
+    """Weighted mean pose and the map of the highest-weight particle.
+
+    Right after a resampling step all weights are equal and the "best" particle is the first
+    survivor: a draw from the posterior over maps rather than its mode.
+    """
     particles, log_weight = state.particles, state.log_weight
     mean = circular_weighted_mean_pose(particles.pose, log_weight)
     diff = particles.pose - mean[None, :]

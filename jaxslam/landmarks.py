@@ -65,6 +65,9 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
     saturated = jnp.all(obs_valid)
     horizon = jnp.where(saturated, jnp.max(jnp.where(obs_valid, z[:, 0], 0.0)), jnp.inf)
     within_horizon = predicted.range <= horizon
+    # Observations nearer than min_range could never match (no landmark there is matchable)
+    # and would create a twin every step.
+    obs_valid = obs_valid & (z[:, 0] >= params.min_range)
     if boundary == "hard":
         usable = obs_valid & (z[:, 0] <= params.max_range)
         matchable = active & in_min_range & (predicted.range <= params.max_range)

@@ -62,9 +62,9 @@ class FilterConfig:
       mixture_mode: ``fixed`` ratio phi or ``adaptive`` (only used by the mixture proposal).
       resampling: one of ``RESAMPLINGS``.
       boundary: ``hard`` visibility limit or ``loose`` airlock (seed 000 section 3.1).
-      max_match_rounds: bound on Gale-Shapley rounds; 0 means K + M. Each round every free
-        observation proposes to its next landmark, so K*M rounds always suffice; K + M is
-        enough in practice and the rounds actually used are reported in ``info``.
+      max_match_rounds: bound on Gale-Shapley rounds; 0 means K * (M + 1), a bound that is
+        never reached (each round either forms a proposal or exhausts an observation's list),
+        so a matching is never cut short; the rounds actually used are in ``info``.
     """
 
     num_particles: int = 100
@@ -85,7 +85,7 @@ class FilterConfig:
                 or self.max_match_rounds < 0):
             raise ValueError(
                 f"FilterConfig.max_match_rounds={self.max_match_rounds!r} is invalid; "
-                "expected an integer >= 0 (0 means max_obs + max_landmarks)"
+                "expected an integer >= 0 (0 means max_obs * (max_landmarks + 1))"
             )
         _check_choice("motion_model", self.motion_model, MOTION_MODELS)
         _check_choice("association", self.association, ASSOCIATIONS)
@@ -97,7 +97,7 @@ class FilterConfig:
     @property
     def match_rounds(self) -> int:
         """The bound actually used for the Gale-Shapley loop."""
-        return self.max_match_rounds or (self.max_obs + self.max_landmarks)
+        return self.max_match_rounds or self.max_obs * (self.max_landmarks + 1)
 
 
 class Params(NamedTuple):

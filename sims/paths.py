@@ -107,7 +107,7 @@ def path_clearance(poses, centres, radii):
     return jnp.min(jnp.hypot(delta[..., 0], delta[..., 1]) - jnp.asarray(radii)[None])
 
 
-def true_moves(poses, min_translation: float = 1e-3):
+def true_moves(poses, min_translation: float = 0.01):
     """(T, 3) true (rot1, trans, rot2) moves between consecutive poses (T+1, 3)."""
     return odometry_from_poses(poses[:-1], poses[1:], min_translation)
 

@@ -238,7 +238,7 @@ def _simulate(model, data, wheel_geoms, commands, friction, spec, substeps, min_
 
 
 def simulate(robot: Robot, commands, friction, interval: float = 0.5,
-             min_translation: float = 1e-3) -> RobotLog:
+             min_translation: float = 0.01) -> RobotLog:
     """Drive ``robot`` with wheel-speed ``commands`` (T, 2) [rad/s], one per ``interval`` s.
 
     Args:
@@ -264,7 +264,7 @@ def simulate(robot: Robot, commands, friction, interval: float = 0.5,
 
 
 def simulate_batch(robot: Robot, commands, friction, interval: float = 0.5,
-                   min_translation: float = 1e-3) -> RobotLog:
+                   min_translation: float = 0.01) -> RobotLog:
     """``simulate`` vmapped over R robots: commands (R, T, 2), friction (R,) or ()."""
     commands = jnp.asarray(commands)
     if commands.ndim != 3 or commands.shape[2] != 2:

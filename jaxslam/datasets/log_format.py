@@ -370,7 +370,7 @@ def _odometry_poses(increments):
                      heading], axis=-1)
 
 
-def odometry_between(pose_a, pose_b, min_translation: float = 1e-3):
+def odometry_between(pose_a, pose_b, min_translation: float = 0.01):
     """The odometry move (rot1, trans, rot2) taking pose_a (..., 3) to pose_b (..., 3).
 
     rot1 = atan2(dy, dx) - theta_a, trans = |d|, rot2 = theta_b - theta_a - rot1 (wrapped).
@@ -417,7 +417,7 @@ def _check_integration_inputs(control_time, controls, obs_time, motion_model):
 
 def integrate_controls(control_time, controls, obs_time, motion_model: str,
                        vehicle: AckermannVehicle | None = None,
-                       min_translation: float = 1e-3) -> np.ndarray:
+                       min_translation: float = 0.01) -> np.ndarray:
     """Compose high-rate controls between observation times into one odometry move per step.
 
     velocity / ackermann: sample i, (v, omega) or (v, steering), is held from control_time[i]
