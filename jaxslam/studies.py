@@ -76,35 +76,19 @@ def _run_metrics(config: StudyConfig, key, params: Params, controls, observation
     state = make_filter(filter_config).init(world.truth_pose[0])
     final, trace = scan_filter(filter_config, jax.random.fold_in(key, 1), state, params,
                                controls, observations)
-    scenario = world
     truth = world.truth_pose[1:]
     est = estimate(final)
     position_error = jnp.hypot(trace.mean_pose[:, 0] - truth[:, 0],
                                trace.mean_pose[:, 1] - truth[:, 1])
-    final_error = position_error[-1]
-    map_scores = metrics.map_metrics(est.landmark_mean, est.active, scenario.tree_centres,
-                                     scenario.tree_seen, config.map_match_threshold)
-    gospa = metrics.gospa(est.landmark_mean, est.active, scenario.tree_centres,
-                          scenario.tree_seen, config.gospa_cutoff)
-    rpe_translation, rpe_rotation = metrics.rpe(trace.mean_pose, truth, delta=1)
+    scores = metrics.summarize(
+        trace.mean_pose, truth, est.landmark_mean, est.active, world.tree_centres,
+        world.tree_seen, match_threshold=config.map_match_threshold,
+        gospa_cutoff=config.gospa_cutoff, divergence_threshold=config.divergence_threshold,
+        landmark_cov=est.landmark_cov, final_pose_cov=est.pose_cov + 1e-9 * jnp.eye(3))
     diameter_error, num_diameters = _diameter_error(est, world, config.map_match_threshold)
-    pose_mean, pose_cov = metrics.particle_pose_moments(final.particles.pose, final.log_weight)
     values = dict(
-        final_pose_error=final_error,
-        final_heading_error=jnp.abs(metrics.heading_error(trace.mean_pose[-1], truth[-1])),
-        ate_rmse=metrics.ate_rmse(trace.mean_pose, truth),
-        ate_rmse_aligned=metrics.ate_rmse(trace.mean_pose, truth, align=True),
-        rpe_translation=rpe_translation,
-        rpe_rotation=rpe_rotation,
-        map_error=map_scores.map_error,
-        redundant=map_scores.redundant,
-        orphan=map_scores.orphan,
-        num_landmarks=map_scores.num_landmarks,
-        num_trees_mapped=map_scores.num_trees_mapped,
-        num_trees_seen=jnp.sum(scenario.tree_seen).astype(jnp.int32),
-        gospa=gospa.distance,
-        pose_nees=metrics.pose_nees(pose_mean, pose_cov + 1e-9 * jnp.eye(3), truth[-1]),
-        diverged=final_error > config.divergence_threshold,
+        scores._asdict(),
+        num_trees_seen=jnp.sum(world.tree_seen).astype(jnp.int32),
         diameter_error=diameter_error,
         num_diameters=num_diameters,
         min_ess=jnp.min(trace.ess),
