@@ -114,8 +114,14 @@ def _simulator(settings: ScenarioConfig, seed: int, max_obs: int):
         key_odometry, key_obs = jax.random.split(jax.random.fold_in(run_key, 0))
         controls = noisy_odometry(key_odometry, moves, params)
         steps = jnp.arange(moves.shape[0])
-        observations = jax.vmap(observe)(jax.random.split(key_obs, moves.shape[0]), path[1:],
-                                         steps)
+        inputs = (jax.random.split(key_obs, moves.shape[0]), path[1:], steps)
+        if settings.observation_source == "analytic":
+            observations = jax.vmap(observe)(*inputs)
+        else:
+            # Scan detection holds (segments x beams) work arrays (B x B for the geometric and
+            # RANSAC fits): a vmap over all T steps of a 100-run chunk asked for 63 GB. Steps
+            # go in sequence, runs stay vmapped.
+            observations = jax.lax.map(lambda args: observe(*args), inputs)
         if settings.observation_source == "analytic":
             ids = jnp.where(observations.valid, observations.landmark_id, centres.shape[0])
             seen = jnp.zeros(centres.shape[0], bool).at[ids.ravel()].set(True, mode="drop")
