@@ -94,13 +94,12 @@ def bench_batch(num_runs, chunk, num_particles, max_landmarks, max_obs, num_step
                         scenario=ScenarioConfig(num_steps=num_steps))
     params = default_params(config)
 
-    def one(key, scenario):
-        state = make_filter(config).init(scenario.truth_pose[0])
-        final, trace = scan_filter(config, key, state, params, scenario.controls,
-                                   scenario.observations)
+    def one(key, controls, observations, start_pose):
+        state = make_filter(config).init(start_pose)
+        final, trace = scan_filter(config, key, state, params, controls, observations)
         return trace.mean_pose[-1]
 
-    batched = jax.jit(jax.vmap(one))
+    batched = jax.jit(jax.vmap(one, in_axes=(0, 0, 0, None)))
     sim_s = filter_s = compile_s = 0.0
     compiled = None
     for start in range(0, num_runs, chunk):
@@ -110,12 +109,13 @@ def bench_batch(num_runs, chunk, num_particles, max_landmarks, max_obs, num_step
         sim_s += time.perf_counter() - tick
         keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(7), i))(
             jnp.asarray(ids, jnp.uint32))
+        args = (keys, scenario.controls, scenario.observations, scenario.truth_pose[0])
         if compiled is None:
             tick = time.perf_counter()
-            compiled = batched.lower(keys, scenario).compile()
+            compiled = batched.lower(*args).compile()
             compile_s = time.perf_counter() - tick
         tick = time.perf_counter()
-        jax.block_until_ready(compiled(keys, scenario))
+        jax.block_until_ready(compiled(*args))
         filter_s += time.perf_counter() - tick
     runs = (num_runs // chunk) * chunk
     rate = runs * num_particles * num_steps / filter_s
