@@ -113,6 +113,9 @@ def write_comparison(experiment: str, pipelines: dict, results: dict, metrics: l
     text = f"# {experiment}\n\n{preamble}\n\n" + summary_table(columns, metrics)
     (out / "table.md").write_text(text)
     for metric in metrics:
+        values = {v for v in columns[metric] if v is not None}
+        if values <= {0, 1, 0.0, 1.0, True, False} or metric.startswith("mean_mixture"):
+            continue  # a rate or a setting: the table says it better than a box plot
         plot_sweep_boxes(columns, metric, out / f"box_{metric}.png", sweep=["pipeline"],
                          title=f"{experiment}: {metric}")
     print(text)
