@@ -28,6 +28,36 @@ STUDIES = [
 ]
 
 
+FINDINGS = {
+    "table3": (
+        "**Findings.** Circle fits cut the final pose error about 12x (0.49 -> 0.042 m; paper "
+        "~10x) and the map error about 7x (0.52 -> 0.078 m; paper >3x): the paper's direction "
+        "is confirmed. The loose boundary did not halve the map error here (0.078 -> 0.075 m); "
+        "it removes the last twins (0.027 -> 0.002 per run). Reason: the detector needs at "
+        "least 4 beams per trunk, so trunks near the 20 m limit are rarely detected and the "
+        "range-limit side effect the airlock guards against hardly occurs in this simulation."),
+    "mixture_proposal": (
+        "**Findings.** In the divergence regime the mixture beats the motion proposal: at P=10 "
+        "divergence falls from 13.1% (motion) to 0.4% (phi=0.3) and 0.1% (phi=1), at P=30 from "
+        "2.0% to 0.2%, for 1.7x the cost per step. phi=0 inside the mixture is worse than the "
+        "plain motion proposal because it associates at the motion mean rather than at each "
+        "sample. The adaptive ratio (mean phi ~0.16) sits between."),
+    "association": (
+        "**Findings.** Stable matching, greedy and optimal assignment give identical results "
+        "on every run (well-separated trunks, accurate sensor), and stable matching is 4x "
+        "faster than greedy and 7x faster than the Hungarian solver. The airlock halves "
+        "redundant features (1.08 -> 0.54 per run) but leaves trees in the ring unmapped "
+        "(GOSPA 2.1 -> 3.4)."),
+    "trunk_diameter": (
+        "**Findings.** Circle fits give 7.6-8.3 mm mean diameter error (seed 003: 5.7 mm on "
+        "real trees with a 3D lidar); the centroid pipeline's chord/2 is off by 5.7 cm."),
+    "scaling": (
+        "**Findings.** Throughput grows with the batch (particles x runs) until about 25-30 k "
+        "particles per step, then flattens near 150-180 M (particle, observation, landmark) "
+        "evaluations per second; memory is linear in P M K."),
+}
+
+
 def main():
     docs = ROOT / "docs"
     lines = ["# Results", "",
@@ -48,6 +78,8 @@ def main():
         body = table.read_text().split("\n")
         body = [line for line in body if not line.startswith("# ")]
         lines += body + [""]
+        if study in FINDINGS:
+            lines += [FINDINGS[study], ""]
         for png in sorted(source.glob("*.png")):
             shutil.copy(png, target / png.name)
             lines += [f"![{study} {png.stem}](results/{study}/{png.name})", ""]
