@@ -219,6 +219,15 @@ def _stable_match(cost, gate, bound, rows_per_round):
     return final.match, final.rounds
 
 
+def _match_or_empty(core, cost, gate) -> jax.Array:
+    """Check the inputs, answer an empty problem with no match, else run the jitted core."""
+    cost, gate = _as_cost_and_gate(cost, gate)
+    num_obs, num_slots = cost.shape
+    if num_obs == 0 or num_slots == 0:
+        return _no_match(num_obs)
+    return core(cost, gate)
+
+
 def greedy_match(cost, gate) -> jax.Array:
     """Global nearest neighbour: repeatedly form the cheapest remaining admissible pair.
 
@@ -232,11 +241,7 @@ def greedy_match(cost, gate) -> jax.Array:
     Returns:
       match: (K,) int32 landmark slot of each observation, -1 when unmatched.
     """
-    cost, gate = _as_cost_and_gate(cost, gate)
-    num_obs, num_slots = cost.shape
-    if num_obs == 0 or num_slots == 0:
-        return _no_match(num_obs)
-    return _greedy_match(cost, gate)
+    return _match_or_empty(_greedy_match, cost, gate)
 
 
 @jax.jit
@@ -275,11 +280,7 @@ def hungarian_match(cost, gate) -> jax.Array:
     Returns:
       match: (K,) int32 landmark slot of each observation, -1 when unmatched.
     """
-    cost, gate = _as_cost_and_gate(cost, gate)
-    num_obs, num_slots = cost.shape
-    if num_obs == 0 or num_slots == 0:
-        return _no_match(num_obs)
-    return _hungarian_match(cost, gate)
+    return _match_or_empty(_hungarian_match, cost, gate)
 
 
 @jax.jit

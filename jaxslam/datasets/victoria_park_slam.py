@@ -291,6 +291,20 @@ def _run_one(config, key, params, controls, observations):
             state.particles.observation_count[best.best_particle])
 
 
+def _run_inputs(data, config, params, observations, num_scans, dtype, steering_bias):
+    """Defaults filled in and everything cut to the first T = ``num_scans`` scans:
+    (config, params, controls (T, 3), observations with (T, K) leaves, the log, T)."""
+    config = victoria_park_config() if config is None else config
+    params = victoria_park_params(config, dtype) if params is None else params
+    log = victoria_park_log(data)
+    steps = _prefix(num_scans, log.num_steps)
+    if observations is None:
+        observations = detect_scans(log.scan_ranges[:steps], log.scan_angles, config.max_obs,
+                                    dtype)
+    controls = jnp.asarray(victoria_park_controls(data, steering_bias)[:steps], dtype)
+    return config, params, controls, _slice_obs(observations, steps), log, steps
+
+
 def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = None,
                       params: Params | None = None, observations: Observations | None = None,
                       num_scans: int | None = None, confirm_count: int = 3,
@@ -307,16 +321,9 @@ def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = Non
       confirm_count: updates a landmark needs to count in ``num_confirmed``.
       steering_bias: added to the steering angle (``victoria_park_controls``).
     """
-    config = victoria_park_config() if config is None else config
-    params = victoria_park_params(config, dtype) if params is None else params
-    log = victoria_park_log(data)
-    steps = _prefix(num_scans, log.num_steps)
-    if observations is None:
-        observations = detect_scans(log.scan_ranges[:steps], log.scan_angles, config.max_obs,
-                                    dtype)
-    controls = jnp.asarray(victoria_park_controls(data, steering_bias)[:steps], dtype)
-    outputs, compile_s, run_s = _timed_run(config, key, params, controls,
-                                           _slice_obs(observations, steps))
+    config, params, controls, observations, log, steps = _run_inputs(
+        data, config, params, observations, num_scans, dtype, steering_bias)
+    outputs, compile_s, run_s = _timed_run(config, key, params, controls, observations)
     path, ess, num_landmarks, landmark_mean, active, count = (np.asarray(o) for o in outputs)
     return VictoriaParkRun(
         time=log.time[:steps], path=path, landmark_mean=landmark_mean, active=active,
@@ -396,17 +403,10 @@ def run_victoria_park_batch(key, data: VictoriaPark, num_runs: int,
     """
     if not isinstance(num_runs, (int, np.integer)) or num_runs < 1:
         raise ValueError(f"num_runs={num_runs!r} is invalid; expected a positive integer")
-    config = victoria_park_config() if config is None else config
-    params = victoria_park_params(config, dtype) if params is None else params
-    log = victoria_park_log(data)
-    steps = _prefix(num_scans, log.num_steps)
-    if observations is None:
-        observations = detect_scans(log.scan_ranges[:steps], log.scan_angles, config.max_obs,
-                                    dtype)
+    config, params, controls, observations, log, steps = _run_inputs(
+        data, config, params, observations, num_scans, dtype, steering_bias)
     keys = jax.vmap(lambda run: jax.random.fold_in(key, run))(jnp.arange(num_runs))
-    args = (keys, params, jnp.asarray(victoria_park_controls(data, steering_bias)[:steps],
-                                      dtype),
-            _slice_obs(observations, steps))
+    args = (keys, params, controls, observations)
     executable, compile_s = _compiled(_run_batch, config, *args)
     start = time.perf_counter()
     paths, num_trees = jax.block_until_ready(executable(*args))
