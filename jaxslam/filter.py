@@ -193,6 +193,11 @@ class _Association(NamedTuple):
     predicted: ekf.PredictedMeasurement  # (M,) fields, at the matching pose
 
 
+def _to_slots(window_values, slots, num_slots: int):
+    """(N,) bool flags of the windowed landmarks -> (M,) over all slots (False elsewhere)."""
+    return jnp.zeros((num_slots,), bool).at[slots].set(window_values)
+
+
 def _associate(config: FilterConfig, params: Params, particle: Particles, match_pose,
                obs: Observations) -> _Association:
     """Steps 2-3 of the module docstring at ``match_pose`` (3,): predictions, boundary, matching.
@@ -202,13 +207,26 @@ def _associate(config: FilterConfig, params: Params, particle: Particles, match_
     """
     predicted = ekf.predict_measurements(match_pose, particle.landmark_mean,
                                          particle.landmark_cov, params)
-    mahalanobis = ekf.mahalanobis_sq(obs.z, predicted)
-    mahalanobis = jnp.where(obs.valid[:, None] & particle.active[None, :], mahalanobis, jnp.inf)
-    vis = landmarks.visibility(obs.z, obs.valid, particle.active, predicted, mahalanobis,
+    window = config.association_window
+    if 0 < window < config.max_landmarks:
+        # Pair work on the N nearest active landmarks only; results mapped back to slots.
+        _, slots = jax.lax.top_k(-jnp.where(particle.active, predicted.range, jnp.inf), window)
+        local = particle._replace(active=particle.active[slots],
+                                  landmark_id=particle.landmark_id[slots])
+        local_predicted = jax.tree.map(lambda leaf: leaf[slots], predicted)
+    else:
+        slots, local, local_predicted = None, particle, predicted
+    mahalanobis = ekf.mahalanobis_sq(obs.z, local_predicted)
+    mahalanobis = jnp.where(obs.valid[:, None] & local.active[None, :], mahalanobis, jnp.inf)
+    vis = landmarks.visibility(obs.z, obs.valid, local.active, local_predicted, mahalanobis,
                                params, config.boundary)
-    cost = _association_cost(config, obs, particle, mahalanobis, vis)
+    cost = _association_cost(config, obs, local, mahalanobis, vis)
     match, rounds = association.match(config.association, cost, params.association_gate,
                                       config.match_rounds)
+    if slots is not None:
+        match = jnp.where(match >= 0, slots[jnp.clip(match, 0)], -1).astype(jnp.int32)
+        vis = vis._replace(**{name: _to_slots(getattr(vis, name), slots, config.max_landmarks)
+                              for name in ("matchable", "explained", "expected")})
     return _Association(match, rounds, vis, predicted)
 
 

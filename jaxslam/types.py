@@ -62,6 +62,10 @@ class FilterConfig:
       mixture_mode: ``fixed`` ratio phi or ``adaptive`` (only used by the mixture proposal).
       resampling: one of ``RESAMPLINGS``.
       boundary: ``hard`` visibility limit or ``loose`` airlock (seed 000 section 3.1).
+      association_window: 0 (default) matches observations against every slot; N > 0 only
+        against each particle's N nearest active landmarks (by predicted range). Landmarks
+        outside the window are neither matched nor penalised, so choose N above the number of
+        trees the sensor can see at once. Cuts the (K, M) pair work to (K, N) for large maps.
       max_match_rounds: bound on Gale-Shapley rounds; 0 means K * (M + 1), a bound that is
         never reached (each round either forms a proposal or exhausts an observation's list),
         so a matching is never cut short; the rounds actually used are in ``info``.
@@ -77,6 +81,7 @@ class FilterConfig:
     resampling: str = "systematic"
     boundary: str = "loose"
     max_match_rounds: int = 0
+    association_window: int = 0
 
     def __post_init__(self):
         for name in ("num_particles", "max_landmarks", "max_obs"):
@@ -87,6 +92,11 @@ class FilterConfig:
                 f"FilterConfig.max_match_rounds={self.max_match_rounds!r} is invalid; "
                 "expected an integer >= 0 (0 means max_obs * (max_landmarks + 1))"
             )
+        if (not isinstance(self.association_window, (int, np.integer))
+                or self.association_window < 0):
+            raise ValueError(
+                f"FilterConfig.association_window={self.association_window!r} is invalid; "
+                "expected an integer >= 0 (0 means every landmark slot)")
         _check_choice("motion_model", self.motion_model, MOTION_MODELS)
         _check_choice("association", self.association, ASSOCIATIONS)
         _check_choice("proposal", self.proposal, PROPOSALS)

@@ -58,3 +58,34 @@ def test_filter_unpacks_as_init_step():
     state = init(jnp.zeros(3))
     chex.assert_shape(state.log_weight, (4,))
     del step
+
+
+def test_association_window_matches_full_association_when_it_covers_the_map():
+    """With more window places than active landmarks, windowed association is exact: the
+    same keys give the same particles, weights and maps as matching against every slot."""
+    rng = np.random.default_rng(0)
+    trees = rng.uniform(-8.0, 8.0, (6, 2))
+    steps = 6
+    poses = np.stack([0.3 * np.arange(steps + 1), np.zeros(steps + 1), np.zeros(steps + 1)], -1)
+    z = np.zeros((steps, 8, 2), np.float32)
+    valid = np.zeros((steps, 8), bool)
+    for t in range(steps):
+        delta = trees - poses[t + 1, :2]
+        z[t, :6] = np.stack([np.hypot(*delta.T), np.arctan2(delta[:, 1], delta[:, 0])], -1)
+        valid[t, :6] = True
+    obs = jaxslam.make_observations(jnp.asarray(z), jnp.asarray(valid))
+    controls = jnp.tile(jnp.asarray([0.0, 0.3, 0.0], jnp.float32), (steps, 1))
+    outs = []
+    for window in (0, 10):
+        config = jaxslam.FilterConfig(num_particles=4, max_landmarks=16, max_obs=8,
+                                      association_window=window)
+        params = jaxslam.default_params(config, max_range=15.0)
+        outs.append(jaxslam.run_filter(config, jax.random.PRNGKey(3), params, controls, obs))
+    (full, _), (windowed, _) = outs
+    assert int(np.sum(np.asarray(full.particles.active[0]))) == 6
+    chex.assert_trees_all_close(full, windowed, atol=1e-6)
+
+
+def test_association_window_rejects_negative():
+    with pytest.raises(ValueError, match="association_window"):
+        jaxslam.FilterConfig(association_window=-1)

@@ -231,10 +231,17 @@ def filter_gps(time, xy, max_speed: float = 10.0, jump_margin: float = 1.0,
     return keep
 
 
+# Pure-turn threshold for splitting the integrated dead-reckoning moves into (rot1, trans,
+# rot2): 1 mm, not the filter's 1 cm default (these moves are integrated, not jittering poses;
+# see ``victoria_park_slam.victoria_park_controls`` for the measured effect).
+VP_MIN_TRANSLATION = 1e-3
+
+
 def dead_reckoning_controls(data: VictoriaPark) -> np.ndarray:
     """(S, 3) odometry moves between laser times from the Ackermann dead reckoning."""
     return integrate_controls(data.dr_time, np.stack([data.dr_speed, data.dr_steering], -1),
-                              data.laser_time, "ackermann", VICTORIA_PARK_VEHICLE)
+                              data.laser_time, "ackermann", VICTORIA_PARK_VEHICLE,
+                              min_translation=VP_MIN_TRANSLATION)
 
 
 def dead_reckoning_path(data: VictoriaPark) -> np.ndarray:

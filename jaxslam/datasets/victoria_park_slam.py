@@ -34,6 +34,7 @@ import numpy as np
 
 from jaxslam.datasets.log_format import VICTORIA_PARK_VEHICLE, body_rates, integrate_controls
 from jaxslam.datasets.victoria_park import (
+    VP_MIN_TRANSLATION,
     VictoriaPark,
     filter_gps,
     gps_error,
@@ -94,10 +95,14 @@ def victoria_park_controls(data: VictoriaPark, steering_bias: float = STEERING_B
     The Ackermann dead reckoning (v * speed_scale, alpha + steering_bias) is integrated by
     ``log_format.integrate_controls`` exactly as ``victoria_park.dead_reckoning_controls``
     (which is this with bias 0 and scale 1).
+
+    Moves are split into (rot1, trans, rot2) with a 1 mm pure-turn threshold, not the 1 cm
+    default: these moves are integrated dead reckoning, not jittering poses, and on the whole
+    log (P=100, seeds 0-3) 1 mm gave GPS RMSE 13.4-17.2 m where 1 cm gave 12.0-39.4 m.
     """
     inputs = np.stack([data.dr_speed * speed_scale, data.dr_steering + steering_bias], -1)
     return integrate_controls(data.dr_time, inputs, data.laser_time, "ackermann",
-                              VICTORIA_PARK_VEHICLE)
+                              VICTORIA_PARK_VEHICLE, min_translation=VP_MIN_TRANSLATION)
 
 
 def steering_bias_from_gps(data: VictoriaPark, until: float | None = None,
@@ -227,7 +232,10 @@ def summarize_detections(observations: Observations) -> DetectionSummary:
 
 def victoria_park_config(num_particles: int = 100, max_landmarks: int = 320,
                          max_obs: int = CLASSIC_MAX_TRUNKS, **fields) -> FilterConfig:
-    """``FilterConfig`` for Victoria Park: odometry controls, stable matching, loose boundary."""
+    """``FilterConfig`` for Victoria Park: odometry controls, stable matching, loose boundary,
+    association against each particle's 48 nearest landmarks (at most ~15 trunks are seen per
+    scan; seed 0 gave the same run as the full association, 18 s instead of 24 s)."""
+    fields.setdefault("association_window", 48)
     return FilterConfig(num_particles=num_particles, max_landmarks=max_landmarks,
                         max_obs=max_obs, motion_model="odometry", **fields)
 
