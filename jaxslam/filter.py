@@ -44,6 +44,8 @@ class StepInfo(NamedTuple):
     mixture_ratio: () the phi used this step (0 for the motion proposal, 1 for observation).
     num_observation_draws: () int32 particles drawn from the observation proposal.
     mean_log_likelihood: () weighted mean of the per-observation log-likelihood.
+    best_particle: () int32 index (after resampling) of a copy of the particle that had the
+      highest weight before resampling (all weights are equal right after resampling).
     """
 
     ess: jnp.ndarray
@@ -58,6 +60,7 @@ class StepInfo(NamedTuple):
     mixture_ratio: jnp.ndarray
     num_observation_draws: jnp.ndarray
     mean_log_likelihood: jnp.ndarray
+    best_particle: jnp.ndarray
 
 
 class Filter(NamedTuple):
@@ -400,14 +403,20 @@ def _step(config: FilterConfig, key, state: FilterState, params: Params, control
     ess = resampling.effective_sample_size(log_weight)
     do_resample = ess < params.ess_threshold * config.num_particles
 
+    best_before = jnp.argmax(log_weight).astype(jnp.int32)
+
     def resample(operand):
-        particles, weights = operand
+        particles, weights, best = operand
         indices = resampling.resample_indices(key_resample, weights, config.resampling)
         uniform = jnp.full_like(weights, -jnp.log(config.num_particles))
-        return resampling.gather(particles, indices), uniform
+        # The highest-weight particle's first copy (kept unless the scheme dropped it).
+        copies = indices == best
+        best = jnp.where(jnp.any(copies), jnp.argmax(copies), 0).astype(jnp.int32)
+        return resampling.gather(particles, indices), uniform, best
 
-    particles, log_weight = jax.lax.cond(do_resample, resample, lambda operand: operand,
-                                         (result.particle, log_weight))
+    particles, log_weight, best_particle = jax.lax.cond(
+        do_resample, resample, lambda operand: operand,
+        (result.particle, log_weight, best_before))
     new_state = FilterState(particles, log_weight, fast, slow, state.step + 1)
     info = StepInfo(
         ess=ess, resampled=do_resample, weights_reset=reset,
@@ -416,7 +425,7 @@ def _step(config: FilterConfig, key, state: FilterState, params: Params, control
         num_invalid_obs=num_invalid, num_dropped_births=result.dropped,
         num_set_aside=result.set_aside, mixture_ratio=ratio,
         num_observation_draws=jnp.sum(used_obs).astype(jnp.int32),
-        mean_log_likelihood=mean_ll,
+        mean_log_likelihood=mean_ll, best_particle=best_particle,
     )
     return new_state, info
 
@@ -461,7 +470,7 @@ def estimate(state: FilterState) -> Estimate:
 
 
 def _trace_row(state: FilterState, info: StepInfo) -> Trace:
-    best = jnp.argmax(state.log_weight)
+    best = info.best_particle
     return Trace(
         mean_pose=circular_weighted_mean_pose(state.particles.pose, state.log_weight),
         best_pose=state.particles.pose[best], ess=info.ess,

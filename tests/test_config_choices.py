@@ -89,3 +89,21 @@ def test_association_window_matches_full_association_when_it_covers_the_map():
 def test_association_window_rejects_negative():
     with pytest.raises(ValueError, match="association_window"):
         jaxslam.FilterConfig(association_window=-1)
+
+
+def test_best_particle_survives_resampling():
+    """After a resampling step all weights are equal; info.best_particle still points to a
+    copy of the particle that had the highest weight (here 0.6 of the mass: 3 of 5 copies)."""
+    config = jaxslam.FilterConfig(num_particles=5, max_landmarks=4, max_obs=2)
+    params = jaxslam.default_params(config, ess_threshold=1.0)  # always resample
+    init, step = jaxslam.make_filter(config)
+    state = init(jnp.zeros(3))
+    weights = jnp.asarray([0.1, 0.1, 0.6, 0.1, 0.1])
+    state = state._replace(log_weight=jnp.log(weights))
+    obs = jaxslam.empty_observations(2)
+    new_state, info = jax.jit(step)(jax.random.PRNGKey(0), state, params,
+                                    jnp.asarray([0.1, 0.5, 0.0]), obs)
+    assert bool(info.resampled)
+    pose = np.asarray(new_state.particles.pose)
+    best = pose[int(info.best_particle)]
+    assert int(np.sum(np.all(pose == best, axis=1))) == 3
