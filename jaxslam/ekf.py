@@ -28,6 +28,8 @@ class PredictedMeasurement(NamedTuple):
     range, bearing: h(pose, landmark). h00..h11: Jacobian of h w.r.t. the landmark.
     s_rr, s_rb, s_bb: innovation covariance S = H Sigma H^T + R(range).
     i_rr, i_rb, i_bb: S^-1. log_det: log det S.
+    noise_rr, noise_bb: R(range), the measurement noise variances inside S (kept for the
+      update's Joseph form, so they are computed once per landmark).
     """
 
     range: jnp.ndarray
@@ -43,6 +45,8 @@ class PredictedMeasurement(NamedTuple):
     i_rb: jnp.ndarray
     i_bb: jnp.ndarray
     log_det: jnp.ndarray
+    noise_rr: jnp.ndarray
+    noise_bb: jnp.ndarray
 
 
 def measurement_std(distance, params: Params):
@@ -86,11 +90,12 @@ def predict_measurements(pose, landmark_mean, landmark_cov, params: Params):
     s_rr, s_rb, s_bb = sandwich(h00, h01, h10, h11,
                                 landmark_cov[:, 0], landmark_cov[:, 1], landmark_cov[:, 2])
     sigma_range, sigma_bearing = measurement_std(range_, params)
-    s_rr = s_rr + sigma_range**2
-    s_bb = s_bb + sigma_bearing**2
+    noise_rr, noise_bb = sigma_range**2, sigma_bearing**2
+    s_rr = s_rr + noise_rr
+    s_bb = s_bb + noise_bb
     i_rr, i_rb, i_bb, log_det = inverse_symmetric(s_rr, s_rb, s_bb)
     return PredictedMeasurement(range_, bearing, h00, h01, h10, h11,
-                                s_rr, s_rb, s_bb, i_rr, i_rb, i_bb, log_det)
+                                s_rr, s_rb, s_bb, i_rr, i_rb, i_bb, log_det, noise_rr, noise_bb)
 
 
 def mahalanobis_sq(z, predicted: PredictedMeasurement):
@@ -158,6 +163,7 @@ def update_landmarks(landmark_mean, landmark_cov, predicted: PredictedMeasuremen
     Returns:
       mean (M, 2), covariance components (M, 3).
     """
+    del params  # R(range) comes precomputed in ``predicted``; kept for a stable signature
     p = predicted
     a, b, c = landmark_cov[:, 0], landmark_cov[:, 1], landmark_cov[:, 2]
     # Sigma H^T (2x2): rows = landmark axes, columns = (range, bearing).
@@ -180,9 +186,8 @@ def update_landmarks(landmark_mean, landmark_cov, predicted: PredictedMeasuremen
     a10 = -(gain10 * p.h00 + gain11 * p.h10)
     a11 = 1.0 - (gain10 * p.h01 + gain11 * p.h11)
     j00, j01, j11 = sandwich(a00, a01, a10, a11, a, b, c)
-    sigma_range, sigma_bearing = measurement_std(p.range, params)
     r00, r01, r11 = sandwich(gain00, gain01, gain10, gain11,
-                             sigma_range**2, jnp.zeros_like(a), sigma_bearing**2)
+                             p.noise_rr, jnp.zeros_like(a), p.noise_bb)
     cov = jnp.stack([j00 + r00, j01 + r01, j11 + r11], axis=-1)
     return mean, cov
 

@@ -11,6 +11,7 @@ import pytest
 import tomli_w
 
 from jaxslam import ray_backend, studies
+from test_studies import read_traces  # shared helper, as test_proposal uses test_filter
 
 HAVE_RAY = importlib.util.find_spec("ray") is not None
 needs_ray = pytest.mark.skipif(not HAVE_RAY, reason="ray is not installed (optional extra: "
@@ -39,17 +40,6 @@ def test_bad_worker_count(tmp_path, num_workers):
     with pytest.raises(ValueError, match="num_workers.*positive integer"):
         ray_backend.run_study_ray(config, tmp_path / "out", num_workers=num_workers)
     assert not (tmp_path / "out").exists()
-
-
-def read_traces(out_dir) -> dict:
-    traces = {}
-    for path in sorted(pathlib.Path(out_dir).glob("traces-*.npz")):
-        with np.load(path) as data:
-            for condition, run_id, errors in zip(data["condition"], data["run_id"],
-                                                 data["pose_error"]):
-                assert (int(condition), int(run_id)) not in traces
-                traces[int(condition), int(run_id)] = errors
-    return traces
 
 
 def assert_same_results(out_a, out_b):
@@ -87,7 +77,7 @@ def local_ray():
 @pytest.mark.slow
 def test_ray_matches_local_and_resumes_across_backends(local_ray, tmp_path):
     config = studies.load_study_config(None, TINY)
-    local = studies.run_study(config, tmp_path / "local", progress=False)
+    studies.run_study(config, tmp_path / "local", progress=False)
 
     result = ray_backend.run_study_ray(config, tmp_path / "ray", num_workers=2, progress=False)
     assert sorted(p.name for p in (tmp_path / "ray").iterdir()) == sorted(
