@@ -2,10 +2,15 @@
 
 Pipeline (seed 000 section 2, seed 004 sections 2.2-2.3), fixed shapes throughout:
   1. Beam b is a point p_b = r_b (cos a_b, sin a_b) when min_range < r_b < max_range.
-  2. A segment break precedes beam b when b or b-1 has no point, |r_b - r_{b-1}| > range_jump
-     or |a_b - a_{b-1}| > max_angle_gap. Labels are cumsum(breaks) - 1, so per-segment sums are
-     ``segment_sum`` with num_segments = B. A full-circle scan is rolled to start at a break so
-     a trunk across the -pi seam stays one segment.
+  2. Segments are runs of points. With p the previous beam that has a point, a break precedes
+     the point of beam b when more than ``max_missing_beams`` beams between p and b have no
+     point, |r_b - r_p| > range_jump or |a_b - a_p| > max_angle_gap. With the default 0, any
+     missing beam breaks; a positive value bridges short dropouts, so a wall or a ground
+     strike whose returns are interrupted every few beams stays one wide (rejected) segment
+     instead of many trunk-sized pieces (Victoria Park). Beams without a point join the
+     current segment with weight 0. Labels are cumsum(breaks) - 1, so per-segment sums are
+     ``segment_sum`` with num_segments = B. A full-circle scan is rolled to start at a break
+     so a trunk across the -pi seam stays one segment.
   3. Segments are rejected when too short (fewer than ``min_points`` points), too narrow
      (chord < ``min_width``), too wide (chord > ``max_width``: walls, logs, bushes), occluded
      (a neighbouring beam is nearer than the segment edge by more than ``range_jump``, so part
@@ -36,22 +41,34 @@ def _segment_sum(values, labels, num_segments):
     return jax.ops.segment_sum(values, labels, num_segments=num_segments)
 
 
-def segment_labels(ranges, angles, point_valid, range_jump, max_angle_gap):
-    """Break flags (B,) and segment labels (B,) in [0, B) of a scan (roll already applied)."""
-    jump = jnp.abs(jnp.diff(ranges)) > range_jump
-    gap = jnp.abs(jnp.diff(angles)) > max_angle_gap
-    missing = ~point_valid[1:] | ~point_valid[:-1]
-    breaks = jnp.concatenate([jnp.ones(1, bool), jump | gap | missing])
+def segment_labels(ranges, angles, point_valid, range_jump, max_angle_gap,
+                   max_missing_beams=0):
+    """Break flags (B,) and segment labels (B,) in [0, B) of a scan (roll already applied).
+
+    A point breaks from the previous point p (module docstring, step 2); beams without a
+    point never break (they join the current segment), except beam 0, which always starts one.
+    """
+    index = jnp.arange(ranges.shape[0])
+    last_point = jax.lax.cummax(jnp.where(point_valid, index, -1))
+    previous = jnp.concatenate([jnp.full(1, -1, last_point.dtype), last_point[:-1]])
+    has_previous = previous >= 0
+    safe = jnp.maximum(previous, 0)
+    jump = jnp.abs(ranges - ranges[safe]) > range_jump
+    gap = jnp.abs(angles - angles[safe]) > max_angle_gap
+    missing = (index - previous - 1) > max_missing_beams
+    breaks = point_valid & (~has_previous | jump | gap | missing)
+    breaks = breaks.at[0].set(True)
     return breaks, jnp.cumsum(breaks) - 1
 
 
-def _seam_shift(ranges, angles, point_valid, range_jump, max_angle_gap):
+def _seam_shift(ranges, angles, point_valid, range_jump, max_angle_gap, max_missing_beams=0):
     """Roll offset that starts a full-circle scan at a break (0 when the seam is a break)."""
     two_pi = 2.0 * jnp.pi
     seam_gap = jnp.abs(angles[0] + two_pi - angles[-1])
     seam_joined = ((seam_gap <= max_angle_gap) & point_valid[0] & point_valid[-1]
                    & (jnp.abs(ranges[0] - ranges[-1]) <= range_jump))
-    breaks, _ = segment_labels(ranges, angles, point_valid, range_jump, max_angle_gap)
+    breaks, _ = segment_labels(ranges, angles, point_valid, range_jump, max_angle_gap,
+                               max_missing_beams)
     inner = breaks.at[0].set(False)
     first_break = jnp.where(jnp.any(inner), jnp.argmax(inner), 0)
     return jnp.where(seam_joined, first_break, 0)
@@ -158,7 +175,8 @@ def _ransac(key, x, y, weight, labels, first, count, num_segments, num_hypothese
 
 def detect_trunks(ranges, angles, method: str = "kasa", *, max_obs: int = 16,
                   max_range: float = 20.0, min_range: float = 0.1, key=None,
-                  range_jump: float = 0.3, max_angle_gap: float = 0.05, min_points: int = 4,
+                  range_jump: float = 0.3, max_angle_gap: float = 0.05,
+                  max_missing_beams: int = 0, min_points: int = 4,
                   min_width: float = 0.04, max_width: float = 1.0, min_radius: float = 0.03,
                   max_radius: float = 0.5, max_residual: float = 0.03,
                   geometric_iterations: int = 8, num_hypotheses: int = 32,
@@ -179,12 +197,16 @@ def detect_trunks(ranges, angles, method: str = "kasa", *, max_obs: int = 16,
         raise ValueError(f"detect_trunks method={method!r}; expected one of {list(METHODS)}")
     if method == "ransac" and key is None:
         raise ValueError("detect_trunks method='ransac' needs a PRNG key: pass key=...")
+    if isinstance(max_missing_beams, (int, float)) and max_missing_beams < 0:
+        raise ValueError(f"detect_trunks max_missing_beams={max_missing_beams}; expected an "
+                         "integer >= 0 (0: any beam without a return breaks a segment)")
     ranges, angles = jnp.asarray(ranges), jnp.asarray(angles, jnp.asarray(ranges).dtype)
     if ranges.ndim != 1 or ranges.shape != angles.shape:
         raise ValueError(f"detect_trunks expects ranges (B,) and angles (B,); got "
                          f"{ranges.shape} and {angles.shape}")
     thresholds = dict(max_range=max_range, min_range=min_range, range_jump=range_jump,
-                      max_angle_gap=max_angle_gap, min_points=min_points, min_width=min_width,
+                      max_angle_gap=max_angle_gap, max_missing_beams=max_missing_beams,
+                      min_points=min_points, min_width=min_width,
                       max_width=max_width, min_radius=min_radius, max_radius=max_radius,
                       max_residual=max_residual, inlier_tol=inlier_tol)
     return _detect(ranges, angles, key, method, max_obs, geometric_iterations, num_hypotheses,
@@ -194,16 +216,19 @@ def detect_trunks(ranges, angles, method: str = "kasa", *, max_obs: int = 16,
 @functools.partial(jax.jit, static_argnames=("method", "max_obs", "geometric_iterations",
                                              "num_hypotheses"))
 def _detect(ranges, angles, key, method, max_obs, geometric_iterations, num_hypotheses, *,
-            max_range, min_range, range_jump, max_angle_gap, min_points, min_width, max_width,
+            max_range, min_range, range_jump, max_angle_gap, max_missing_beams, min_points,
+            min_width, max_width,
             min_radius, max_radius, max_residual, inlier_tol) -> Observations:
     """Jitted body of ``detect_trunks`` (thresholds are traced: no recompile per value)."""
     num_beams = ranges.shape[0]
     point_valid = (ranges > min_range) & (ranges < max_range)
-    shift = _seam_shift(ranges, angles, point_valid, range_jump, max_angle_gap)
+    shift = _seam_shift(ranges, angles, point_valid, range_jump, max_angle_gap,
+                        max_missing_beams)
     ranges, angles, point_valid = (jnp.roll(v, -shift) for v in (ranges, angles, point_valid))
     angles = jnp.where(jnp.arange(num_beams) >= num_beams - shift, angles + 2.0 * jnp.pi,
                        angles)
-    breaks, labels = segment_labels(ranges, angles, point_valid, range_jump, max_angle_gap)
+    breaks, labels = segment_labels(ranges, angles, point_valid, range_jump, max_angle_gap,
+                                    max_missing_beams)
     weight = point_valid.astype(ranges.dtype)
     x, y = ranges * jnp.cos(angles), ranges * jnp.sin(angles)
 

@@ -98,6 +98,32 @@ def predict_measurements(pose, landmark_mean, landmark_cov, params: Params):
                                 s_rr, s_rb, s_bb, i_rr, i_rb, i_bb, log_det, noise_rr, noise_bb)
 
 
+def add_pose_uncertainty(predicted: PredictedMeasurement, pose_cov):
+    """Innovation covariance with the pose uncertainty added (FastSLAM 2.0 association).
+
+    Matching at the motion prediction x_hat, the innovation of landmark m has covariance
+    Z = Hx Sigma_u Hx^T + H Sigma_m H^T + R, where Hx = dh/dpose = [-H, (0, -1)^T]
+    (H = dh/dm, the landmark Jacobian). With Sigma_u = [[Sxy, c], [c^T, s_tt]] and
+    v = H c, Hx Sigma_u Hx^T = H Sxy H^T + [[0, v0], [v0, 2 v1 + s_tt]].
+
+    Args:
+      predicted: (M,) fields at x_hat; pose_cov: (3, 3) Sigma_u.
+    Returns:
+      ``PredictedMeasurement`` whose s_*, i_* and log_det describe Z (R and H unchanged).
+    """
+    p = predicted
+    xy_rr, xy_rb, xy_bb = sandwich(p.h00, p.h01, p.h10, p.h11,
+                                   pose_cov[0, 0], pose_cov[0, 1], pose_cov[1, 1])
+    v0 = p.h00 * pose_cov[0, 2] + p.h01 * pose_cov[1, 2]
+    v1 = p.h10 * pose_cov[0, 2] + p.h11 * pose_cov[1, 2]
+    s_rr = p.s_rr + xy_rr
+    s_rb = p.s_rb + xy_rb + v0
+    s_bb = p.s_bb + xy_bb + 2.0 * v1 + pose_cov[2, 2]
+    i_rr, i_rb, i_bb, log_det = inverse_symmetric(s_rr, s_rb, s_bb)
+    return p._replace(s_rr=s_rr, s_rb=s_rb, s_bb=s_bb, i_rr=i_rr, i_rb=i_rb, i_bb=i_bb,
+                      log_det=log_det)
+
+
 def mahalanobis_sq(z, predicted: PredictedMeasurement):
     """Squared Mahalanobis distance d2[k, m] of observation k under landmark m's prediction.
 

@@ -202,23 +202,26 @@ def _to_slots(window_values, slots, num_slots: int):
 
 
 def _associate(config: FilterConfig, params: Params, particle: Particles, match_pose,
-               obs: Observations) -> _Association:
+               obs: Observations, pose_cov=None) -> _Association:
     """Steps 2-3 of the module docstring at ``match_pose`` (3,): predictions, boundary, matching.
 
     ``match_pose`` is the sampled pose for the motion proposal and the motion prediction x_hat
     for the observation and mixture proposals (computed once, shared with the proposal).
+    ``pose_cov`` (3, 3), when given, is added to the matching covariance
+    (``ekf.add_pose_uncertainty``); the returned ``predicted`` keeps S without it.
     """
     predicted = ekf.predict_measurements(match_pose, particle.landmark_mean,
                                          particle.landmark_cov, params)
+    matching = predicted if pose_cov is None else ekf.add_pose_uncertainty(predicted, pose_cov)
     window = config.association_window
     if 0 < window < config.max_landmarks:
         # Pair work on the N nearest active landmarks only; results mapped back to slots.
         _, slots = jax.lax.top_k(-jnp.where(particle.active, predicted.range, jnp.inf), window)
         local = particle._replace(active=particle.active[slots],
                                   landmark_id=particle.landmark_id[slots])
-        local_predicted = jax.tree.map(lambda leaf: leaf[slots], predicted)
+        local_predicted = jax.tree.map(lambda leaf: leaf[slots], matching)
     else:
-        slots, local, local_predicted = None, particle, predicted
+        slots, local, local_predicted = None, particle, matching
     mahalanobis = ekf.mahalanobis_sq(obs.z, local_predicted)
     mahalanobis = jnp.where(obs.valid[:, None] & local.active[None, :], mahalanobis, jnp.inf)
     vis = landmarks.visibility(obs.z, obs.valid, local.active, local_predicted, mahalanobis,
@@ -329,7 +332,8 @@ def _propose(config, key, params, particles: Particles, control, obs, ratio):
     def one(k, particle, motion_sample):
         x_hat = predict_pose(particle.pose, control, params, motion)
         pose_cov = proposal.motion_pose_covariance(particle.pose, control, params, motion)
-        found = _associate(config, params, particle, x_hat, obs)
+        found = _associate(config, params, particle, x_hat, obs,
+                           pose_cov if config.match_pose_uncertainty else None)
         gaussian = proposal.observation_proposal(x_hat, pose_cov, obs.z, found.match,
                                                  found.predicted)
         pose, used_obs = proposal.mixture_sample(k, motion_sample, gaussian, ratio)

@@ -69,6 +69,12 @@ class FilterConfig:
       max_match_rounds: bound on Gale-Shapley rounds; 0 means K * (M + 1), a bound that is
         never reached (each round either forms a proposal or exhausts an observation's list),
         so a matching is never cut short; the rounds actually used are in ``info``.
+      match_pose_uncertainty: with the observation or mixture proposal, observations are
+        matched at the motion prediction x_hat; True adds the pose uncertainty of that
+        prediction to the matching covariance, Z = Hx Sigma_u Hx^T + S (FastSLAM 2.0,
+        Montemerlo et al. 2003), so an accurate sensor still matches when x_hat is off by
+        the motion noise. False matches with S alone. Ignored by the motion proposal (each
+        particle matches at its own sampled pose).
     """
 
     num_particles: int = 100
@@ -82,6 +88,7 @@ class FilterConfig:
     boundary: str = "loose"
     max_match_rounds: int = 0
     association_window: int = 0
+    match_pose_uncertainty: bool = False
 
     def __post_init__(self):
         for name in ("num_particles", "max_landmarks", "max_obs"):
@@ -97,6 +104,10 @@ class FilterConfig:
             raise ValueError(
                 f"FilterConfig.association_window={self.association_window!r} is invalid; "
                 "expected an integer >= 0 (0 means every landmark slot)")
+        if not isinstance(self.match_pose_uncertainty, (bool, np.bool_)):
+            raise ValueError(
+                f"FilterConfig.match_pose_uncertainty={self.match_pose_uncertainty!r} is "
+                "invalid; expected True or False")
         _check_choice("motion_model", self.motion_model, MOTION_MODELS)
         _check_choice("association", self.association, ASSOCIATIONS)
         _check_choice("proposal", self.proposal, PROPOSALS)

@@ -149,3 +149,67 @@ def test_bad_arguments_are_named():
         detect_trunks(jnp.ones(4), jnp.zeros(4), "ransac")
     with pytest.raises(ValueError, match="ranges"):
         detect_trunks(jnp.ones(4), jnp.zeros(3), "kasa")
+
+
+# ---------------------------------------------------------------------------------------------
+# Bridging short dropouts (max_missing_beams)
+
+
+def ref_segment_starts(ranges, angles, valid, range_jump, max_angle_gap, max_missing):
+    """Plain-Python segmentation: indices of the points that start a segment."""
+    starts, previous = [], None
+    for b in range(len(ranges)):
+        if not valid[b]:
+            continue
+        if (previous is None or b - previous - 1 > max_missing
+                or abs(ranges[b] - ranges[previous]) > range_jump
+                or abs(angles[b] - angles[previous]) > max_angle_gap):
+            starts.append(b)
+        previous = b
+    return starts
+
+
+@pytest.mark.parametrize("max_missing", [0, 1, 3])
+def test_segment_labels_match_python_reference(max_missing):
+    from jaxslam.detect import segment_labels
+
+    rng = np.random.default_rng(max_missing)
+    for _ in range(50):
+        num = int(rng.integers(1, 60))
+        angles = np.sort(rng.uniform(-1.0, 1.0, num))
+        ranges = np.round(rng.uniform(1.0, 4.0, num), 1)
+        valid = rng.uniform(size=num) < 0.7
+        breaks, labels = segment_labels(jnp.asarray(ranges), jnp.asarray(angles),
+                                        jnp.asarray(valid), 0.5, 0.08, max_missing)
+        breaks = np.asarray(breaks)
+        starts = ref_segment_starts(ranges, angles, valid, 0.5, 0.08, max_missing)
+        assert [b for b in np.flatnonzero(breaks) if valid[b]] == starts
+        np.testing.assert_array_equal(np.asarray(labels), np.cumsum(breaks) - 1)
+
+
+VP_ANGLES = np.deg2rad(np.arange(361) * 0.5) - np.pi / 2  # Victoria Park's laser
+
+
+def test_bridging_rejects_a_ground_strike_and_keeps_trunks():
+    """A ground strike: an arc at 25 m over 20 degrees with a dropout every third beam (as in
+    Victoria Park scan 4724). Without bridging its 2-beam pieces pass as trunks; bridging 3
+    missing beams makes it one 8-m segment, rejected as too wide. The trunk at 10 m stays."""
+    ranges = ray_circle_scan([[0.0, 10.0]], [0.3], angles=VP_ANGLES, max_range=80.0)
+    arc = (VP_ANGLES > np.deg2rad(-40)) & (VP_ANGLES < np.deg2rad(-20))
+    ranges = np.where(arc, 25.0, ranges)
+    ranges[np.flatnonzero(arc)[::3]] = np.inf
+    settings = dict(max_range=75.0, range_jump=1.5, min_points=2, max_radius=0.6,
+                    max_obs=18)
+    pieces = detect_trunks(jnp.asarray(ranges), jnp.asarray(VP_ANGLES), "centroid",
+                           **settings)
+    assert int(pieces.valid.sum()) > 5  # the arc's pieces
+    bridged = detect_trunks(jnp.asarray(ranges), jnp.asarray(VP_ANGLES), "centroid",
+                            max_missing_beams=3, **settings)
+    assert int(bridged.valid.sum()) == 1
+    centre, _ = centre_of(bridged)
+    assert np.linalg.norm(centre - np.array([0.0, 10.0])) < 0.35  # centroid: within r
+
+
+def test_negative_max_missing_beams_is_named():
+    with pytest.raises(ValueError, match="max_missing_beams"):
+        detect_trunks(jnp.ones(4), jnp.zeros(4), "kasa", max_missing_beams=-1)

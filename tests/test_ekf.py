@@ -302,3 +302,58 @@ def test_landmark_at_zero_distance_stays_finite(dtype, distance):
         assert bool(jnp.all(jnp.isfinite(arr))), arr
     # The born covariance at zero range is the floor's range variance along the beam.
     assert float(born_cov[0, 0] + born_cov[0, 2]) > 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Pose uncertainty in the matching covariance (FastSLAM 2.0)
+
+
+def ref_pose_jacobian(pose, mean):
+    """dh/dpose (2, 3) by central differences of h in float64 (independent of the algebra)."""
+    def h(p):
+        dx, dy = mean[0] - p[0], mean[1] - p[1]
+        return np.array([np.hypot(dx, dy), np.arctan2(dy, dx) - p[2]])
+
+    step = 1e-6
+    cols = [(h(pose + step * e) - h(pose - step * e)) / (2 * step) for e in np.eye(3)]
+    return np.stack(cols, 1)
+
+
+def random_pose_cov(seed):
+    a = np.random.default_rng(seed).normal(size=(3, 3)) * np.array([0.3, 0.3, 0.05])[:, None]
+    return a @ a.T + 1e-6 * np.eye(3)
+
+
+@pytest.mark.parametrize("use_jit", [False, True])
+def test_add_pose_uncertainty_vs_reference(params64, use_jit):
+    case = random_case(7)
+    pose, mean, cov, _ = case
+    pose_cov = random_pose_cov(7)
+    fn = jax.jit(ekf.add_pose_uncertainty) if use_jit else ekf.add_pose_uncertainty
+    p = fn(predict64(case, params64), jnp.asarray(pose_cov))
+    for m in range(mean.shape[0]):
+        _, _, s = ref_predict(pose, mean[m], matrix(cov[m]))
+        hx = ref_pose_jacobian(pose, mean[m])
+        z_cov = s + hx @ pose_cov @ hx.T
+        # Central differences with step 1e-6 are accurate to ~1e-9 relative here.
+        np.testing.assert_allclose([p.s_rr[m], p.s_rb[m], p.s_bb[m]], components(z_cov),
+                                   rtol=1e-7, atol=1e-12)
+        np.testing.assert_allclose([p.i_rr[m], p.i_rb[m], p.i_bb[m]],
+                                   components(np.linalg.inv(z_cov)), rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(float(p.log_det[m]), np.log(np.linalg.det(z_cov)),
+                                   rtol=1e-7)
+
+
+def test_add_pose_uncertainty_zero_cov_is_identity_and_vmaps(params64):
+    cases = [random_case(seed) for seed in (8, 9)]
+    predicted = [predict64(case, params64) for case in cases]
+    same = ekf.add_pose_uncertainty(predicted[0], jnp.zeros((3, 3)))
+    for name in ("s_rr", "s_rb", "s_bb", "i_rr", "i_rb", "i_bb", "log_det"):
+        np.testing.assert_allclose(getattr(same, name), getattr(predicted[0], name), rtol=1e-12)
+    pose_covs = jnp.stack([jnp.asarray(random_pose_cov(s)) for s in (8, 9)])
+    stacked = jax.tree.map(lambda *leaves: jnp.stack(leaves), *predicted)
+    batched = jax.vmap(ekf.add_pose_uncertainty)(stacked, pose_covs)
+    for i in range(2):
+        one = ekf.add_pose_uncertainty(predicted[i], pose_covs[i])
+        np.testing.assert_allclose(batched.s_bb[i], one.s_bb, rtol=1e-12)
+        np.testing.assert_allclose(batched.i_rb[i], one.i_rb, rtol=1e-12)

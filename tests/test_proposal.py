@@ -10,7 +10,7 @@ from scipy.stats import multivariate_normal
 
 from jaxslam import ekf, motion, proposal
 from jaxslam.filter import run_filter
-from jaxslam.types import FilterConfig, default_params
+from jaxslam.types import FilterConfig, Observations, default_params
 
 from test_filter import SENSOR_RANGE, simulate_circle  # noqa: E402  (tests/ is on sys.path)
 
@@ -324,3 +324,62 @@ def test_adaptive_ratio_rises_on_odometry_fault():
     np.testing.assert_array_equal(clean[:31], fault[:31])
     rise = fault[31:34].mean() - clean[31:34].mean()
     assert rise > 0.1, (rise, np.round(clean[28:36], 2), np.round(fault[28:36], 2))
+
+
+# ---------------------------------------------------------------------------------------------
+# Matching at x_hat with the pose uncertainty (FastSLAM 2.0)
+
+
+def _mapped_state(config, params):
+    """One step's state: every particle at PREV with the three LANDMARKS mapped exactly."""
+    from jaxslam.filter import make_filter
+
+    state = make_filter(config).init(jnp.asarray(PREV), dtype=jnp.float64)
+    slots = config.max_landmarks
+    mean = np.zeros((config.num_particles, slots, 2))
+    mean[:, :3] = LANDMARKS
+    cov = np.tile([1.0, 0.0, 1.0], (config.num_particles, slots, 1))
+    cov[:, :3] = [LANDMARK_COV, 0.0, LANDMARK_COV]
+    active = np.zeros((config.num_particles, slots), bool)
+    active[:, :3] = True
+    particles = state.particles._replace(
+        landmark_mean=jnp.asarray(mean), landmark_cov=jnp.asarray(cov),
+        active=jnp.asarray(active), existence=jnp.where(jnp.asarray(active), 3.0, 0.0),
+        observation_count=jnp.asarray(active, jnp.int32))
+    return state._replace(particles=particles)
+
+
+@pytest.mark.parametrize("with_pose_uncertainty", [False, True])
+def test_matching_at_x_hat_uses_pose_uncertainty(params, with_pose_uncertainty):
+    """x_hat 0.03 rad off in heading: 10 bearing sigmas (d2 ~ 100 > gate 25) but ~2 pose
+    sigmas (Sigma_u heading std 0.014 rad, d2 ~ 5). With Z = Hx Sigma_u Hx^T + S every
+    observation matches its landmark and the sampled poses move to the true heading; with S
+    alone none matches and three twins are born."""
+    from jaxslam.filter import make_filter
+
+    config = FilterConfig(num_particles=16, max_landmarks=8, max_obs=3,
+                          proposal="observation", match_pose_uncertainty=with_pose_uncertainty)
+    offset = np.array([0.0, 0.0, 0.03])
+    z = observations(offset=offset)
+    obs = Observations(z=jnp.asarray(z), valid=jnp.ones(3, bool), radius=jnp.zeros(3),
+                       landmark_id=jnp.full(3, -1, jnp.int32))
+    state, info = jax.jit(make_filter(config).step)(
+        jax.random.key(3), _mapped_state(config, params), params, jnp.asarray(CONTROL), obs)
+    match = np.asarray(info.match)
+    heading = np.asarray(state.particles.pose[:, 2])
+    x_hat, _ = ref_prediction()
+    if with_pose_uncertainty:
+        np.testing.assert_array_equal(match, np.tile(np.arange(3), (16, 1)))
+        # Posterior heading within 4 posterior sigmas of the truth (sigma ~ 1e-3 rad here).
+        ref_mean, ref_cov = ref_posterior(z)
+        assert abs(ref_mean[2] - (x_hat[2] + offset[2])) < 0.005
+        assert np.all(np.abs(heading - ref_mean[2]) < 4 * np.sqrt(ref_cov[2, 2]) + 1e-4)
+        assert np.all(np.asarray(info.num_landmarks) == 3)
+    else:
+        assert np.all(match == -1)
+        assert np.all(np.asarray(info.num_landmarks) == 6)
+
+
+def test_match_pose_uncertainty_must_be_bool():
+    with pytest.raises(ValueError, match="match_pose_uncertainty"):
+        FilterConfig(match_pose_uncertainty="yes")
