@@ -5,9 +5,11 @@ Pipeline (seed 000 section 2, seed 004 sections 2.2-2.3), fixed shapes throughou
   2. Segments are runs of points. With p the previous beam that has a point, a break precedes
      the point of beam b when more than ``max_missing_beams`` beams between p and b have no
      point, |r_b - r_p| > range_jump or |a_b - a_p| > max_angle_gap. With the default 0, any
-     missing beam breaks; a positive value bridges short dropouts, so a wall or a ground
+     missing beam breaks; a positive value bridges short dropouts where the ranges on both
+     sides agree within ``bridge_range_jump`` (default range_jump), so a wall or a ground
      strike whose returns are interrupted every few beams stays one wide (rejected) segment
-     instead of many trunk-sized pieces (Victoria Park). Beams without a point join the
+     instead of many trunk-sized pieces (Victoria Park), while a trunk beside a dropout and
+     a neighbour at another range stays apart. Beams without a point join the
      current segment with weight 0. Labels are cumsum(breaks) - 1, so per-segment sums are
      ``segment_sum`` with num_segments = B. A full-circle scan is rolled to start at a break
      so a trunk across the -pi seam stays one segment.
@@ -42,7 +44,7 @@ def _segment_sum(values, labels, num_segments):
 
 
 def segment_labels(ranges, angles, point_valid, range_jump, max_angle_gap,
-                   max_missing_beams=0):
+                   max_missing_beams=0, bridge_range_jump=None):
     """Break flags (B,) and segment labels (B,) in [0, B) of a scan (roll already applied).
 
     A point breaks from the previous point p (module docstring, step 2); beams without a
@@ -53,22 +55,25 @@ def segment_labels(ranges, angles, point_valid, range_jump, max_angle_gap,
     previous = jnp.concatenate([jnp.full(1, -1, last_point.dtype), last_point[:-1]])
     has_previous = previous >= 0
     safe = jnp.maximum(previous, 0)
-    jump = jnp.abs(ranges - ranges[safe]) > range_jump
+    num_missing = index - previous - 1
+    bridge = range_jump if bridge_range_jump is None else bridge_range_jump
+    jump = jnp.abs(ranges - ranges[safe]) > jnp.where(num_missing > 0, bridge, range_jump)
     gap = jnp.abs(angles - angles[safe]) > max_angle_gap
-    missing = (index - previous - 1) > max_missing_beams
+    missing = num_missing > max_missing_beams
     breaks = point_valid & (~has_previous | jump | gap | missing)
     breaks = breaks.at[0].set(True)
     return breaks, jnp.cumsum(breaks) - 1
 
 
-def _seam_shift(ranges, angles, point_valid, range_jump, max_angle_gap, max_missing_beams=0):
+def _seam_shift(ranges, angles, point_valid, range_jump, max_angle_gap, max_missing_beams=0,
+                bridge_range_jump=None):
     """Roll offset that starts a full-circle scan at a break (0 when the seam is a break)."""
     two_pi = 2.0 * jnp.pi
     seam_gap = jnp.abs(angles[0] + two_pi - angles[-1])
     seam_joined = ((seam_gap <= max_angle_gap) & point_valid[0] & point_valid[-1]
                    & (jnp.abs(ranges[0] - ranges[-1]) <= range_jump))
     breaks, _ = segment_labels(ranges, angles, point_valid, range_jump, max_angle_gap,
-                               max_missing_beams)
+                               max_missing_beams, bridge_range_jump)
     inner = breaks.at[0].set(False)
     first_break = jnp.where(jnp.any(inner), jnp.argmax(inner), 0)
     return jnp.where(seam_joined, first_break, 0)
@@ -176,7 +181,8 @@ def _ransac(key, x, y, weight, labels, first, count, num_segments, num_hypothese
 def detect_trunks(ranges, angles, method: str = "kasa", *, max_obs: int = 16,
                   max_range: float = 20.0, min_range: float = 0.1, key=None,
                   range_jump: float = 0.3, max_angle_gap: float = 0.05,
-                  max_missing_beams: int = 0, min_points: int = 4,
+                  max_missing_beams: int = 0, bridge_range_jump: float | None = None,
+                  min_points: int = 4,
                   min_width: float = 0.04, max_width: float = 1.0, min_radius: float = 0.03,
                   max_radius: float = 0.5, max_residual: float = 0.03,
                   geometric_iterations: int = 8, num_hypotheses: int = 32,
@@ -206,6 +212,8 @@ def detect_trunks(ranges, angles, method: str = "kasa", *, max_obs: int = 16,
                          f"{ranges.shape} and {angles.shape}")
     thresholds = dict(max_range=max_range, min_range=min_range, range_jump=range_jump,
                       max_angle_gap=max_angle_gap, max_missing_beams=max_missing_beams,
+                      bridge_range_jump=(range_jump if bridge_range_jump is None
+                                         else bridge_range_jump),
                       min_points=min_points, min_width=min_width,
                       max_width=max_width, min_radius=min_radius, max_radius=max_radius,
                       max_residual=max_residual, inlier_tol=inlier_tol)
@@ -216,19 +224,20 @@ def detect_trunks(ranges, angles, method: str = "kasa", *, max_obs: int = 16,
 @functools.partial(jax.jit, static_argnames=("method", "max_obs", "geometric_iterations",
                                              "num_hypotheses"))
 def _detect(ranges, angles, key, method, max_obs, geometric_iterations, num_hypotheses, *,
-            max_range, min_range, range_jump, max_angle_gap, max_missing_beams, min_points,
+            max_range, min_range, range_jump, max_angle_gap, max_missing_beams,
+            bridge_range_jump, min_points,
             min_width, max_width,
             min_radius, max_radius, max_residual, inlier_tol) -> Observations:
     """Jitted body of ``detect_trunks`` (thresholds are traced: no recompile per value)."""
     num_beams = ranges.shape[0]
     point_valid = (ranges > min_range) & (ranges < max_range)
     shift = _seam_shift(ranges, angles, point_valid, range_jump, max_angle_gap,
-                        max_missing_beams)
+                        max_missing_beams, bridge_range_jump)
     ranges, angles, point_valid = (jnp.roll(v, -shift) for v in (ranges, angles, point_valid))
     angles = jnp.where(jnp.arange(num_beams) >= num_beams - shift, angles + 2.0 * jnp.pi,
                        angles)
     breaks, labels = segment_labels(ranges, angles, point_valid, range_jump, max_angle_gap,
-                                    max_missing_beams)
+                                    max_missing_beams, bridge_range_jump)
     weight = point_valid.astype(ranges.dtype)
     x, y = ranges * jnp.cos(angles), ranges * jnp.sin(angles)
 

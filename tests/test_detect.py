@@ -155,22 +155,24 @@ def test_bad_arguments_are_named():
 # Bridging short dropouts (max_missing_beams)
 
 
-def ref_segment_starts(ranges, angles, valid, range_jump, max_angle_gap, max_missing):
+def ref_segment_starts(ranges, angles, valid, range_jump, max_angle_gap, max_missing,
+                       bridge_jump):
     """Plain-Python segmentation: indices of the points that start a segment."""
     starts, previous = [], None
     for b in range(len(ranges)):
         if not valid[b]:
             continue
+        jump = range_jump if previous is None or b - previous == 1 else bridge_jump
         if (previous is None or b - previous - 1 > max_missing
-                or abs(ranges[b] - ranges[previous]) > range_jump
+                or abs(ranges[b] - ranges[previous]) > jump
                 or abs(angles[b] - angles[previous]) > max_angle_gap):
             starts.append(b)
         previous = b
     return starts
 
 
-@pytest.mark.parametrize("max_missing", [0, 1, 3])
-def test_segment_labels_match_python_reference(max_missing):
+@pytest.mark.parametrize("max_missing, bridge_jump", [(0, 0.5), (1, 0.5), (3, 0.5), (3, 0.2)])
+def test_segment_labels_match_python_reference(max_missing, bridge_jump):
     from jaxslam.detect import segment_labels
 
     rng = np.random.default_rng(max_missing)
@@ -180,21 +182,24 @@ def test_segment_labels_match_python_reference(max_missing):
         ranges = np.round(rng.uniform(1.0, 4.0, num), 1)
         valid = rng.uniform(size=num) < 0.7
         breaks, labels = segment_labels(jnp.asarray(ranges), jnp.asarray(angles),
-                                        jnp.asarray(valid), 0.5, 0.08, max_missing)
+                                        jnp.asarray(valid), 0.5, 0.08, max_missing,
+                                        bridge_jump)
         breaks = np.asarray(breaks)
-        starts = ref_segment_starts(ranges, angles, valid, 0.5, 0.08, max_missing)
+        starts = ref_segment_starts(ranges, angles, valid, 0.5, 0.08, max_missing,
+                                    bridge_jump)
         assert [b for b in np.flatnonzero(breaks) if valid[b]] == starts
         np.testing.assert_array_equal(np.asarray(labels), np.cumsum(breaks) - 1)
 
 
 VP_ANGLES = np.deg2rad(np.arange(361) * 0.5) - np.pi / 2  # Victoria Park's laser
+TRUNK_VP = [8.66, 5.0]  # 10 m away at bearing 30 degrees
 
 
 def test_bridging_rejects_a_ground_strike_and_keeps_trunks():
     """A ground strike: an arc at 25 m over 20 degrees with a dropout every third beam (as in
     Victoria Park scan 4724). Without bridging its 2-beam pieces pass as trunks; bridging 3
     missing beams makes it one 8-m segment, rejected as too wide. The trunk at 10 m stays."""
-    ranges = ray_circle_scan([[0.0, 10.0]], [0.3], angles=VP_ANGLES, max_range=80.0)
+    ranges = ray_circle_scan([TRUNK_VP], [0.3], angles=VP_ANGLES, max_range=80.0)
     arc = (VP_ANGLES > np.deg2rad(-40)) & (VP_ANGLES < np.deg2rad(-20))
     ranges = np.where(arc, 25.0, ranges)
     ranges[np.flatnonzero(arc)[::3]] = np.inf
@@ -207,7 +212,18 @@ def test_bridging_rejects_a_ground_strike_and_keeps_trunks():
                             max_missing_beams=3, **settings)
     assert int(bridged.valid.sum()) == 1
     centre, _ = centre_of(bridged)
-    assert np.linalg.norm(centre - np.array([0.0, 10.0])) < 0.35  # centroid: within r
+    assert np.linalg.norm(centre - np.array(TRUNK_VP)) < 0.35  # centroid: within r
+    # Bridging needs the ranges across the dropout to agree within bridge_range_jump: a
+    # trunk whose neighbour across one missing beam is 1 m farther is not merged with it.
+    ranges = ray_circle_scan([TRUNK_VP], [0.3], angles=VP_ANGLES, max_range=80.0)
+    trunk = np.flatnonzero(np.isfinite(ranges) & (ranges < 80.0))
+    ranges = np.where(np.isfinite(ranges) & (ranges < 80.0), ranges, np.inf)
+    behind = np.arange(trunk[-1] + 2, trunk[-1] + 22)  # 1 dropout, then a 2-m wall 1 m behind
+    ranges[behind] = 11.0
+    for bridge, expected in ((1.5, 0), (0.3, 1)):
+        obs = detect_trunks(jnp.asarray(ranges), jnp.asarray(VP_ANGLES), "centroid",
+                            max_missing_beams=3, bridge_range_jump=bridge, **settings)
+        assert int(obs.valid.sum()) == expected, bridge
 
 
 def test_negative_max_missing_beams_is_named():

@@ -144,7 +144,7 @@ def steering_bias_from_gps(data: VictoriaPark, until: float | None = None,
 def detector_settings(**overrides) -> dict:
     """Keyword arguments of ``detect_trunks`` used for Victoria Park (``DETECTOR_DEFAULTS``)."""
     unknown = set(overrides) - set(DETECTOR_DEFAULTS) - {
-        "max_angle_gap", "max_missing_beams", "min_radius", "geometric_iterations", "num_hypotheses", "inlier_tol"}
+        "max_angle_gap", "max_missing_beams", "bridge_range_jump", "min_radius", "geometric_iterations", "num_hypotheses", "inlier_tol"}
     if unknown:
         raise ValueError(f"detector_settings got unknown field(s) {sorted(unknown)}; expected "
                          f"keyword arguments of jaxslam.detect.detect_trunks")
