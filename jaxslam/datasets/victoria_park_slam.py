@@ -50,9 +50,19 @@ CLASSIC_DETECTOR = dict(max_range=75.0, range_jump=1.5, max_width=1.0)
 CLASSIC_MAX_TRUNKS = 18
 BODY_RANGE = 1.5  # beams nearer than this hit the vehicle itself
 
+# Ground strikes: when the vehicle pitches, the laser hits the grass at a nearly constant
+# range (~25 m) over tens of degrees with a dropout every 2-4 beams (e.g. scans 4715-4730).
+# Split at every dropout, each piece passed as a trunk (7-11 per scan) and was matched to old
+# landmarks. Bridging up to 2 missing beams where the ranges agree within 0.3 m keeps such an
+# arc one wide segment (rejected); trunks beside a dropout and a neighbour at another range
+# stay apart. It removes 928 of 30,266 detections. Whole log, P=100, 8 runs: GPS RMSE
+# median 17.6 m (15.5 without), final trees median 198 (208 without): no accuracy change
+# that 8 runs can resolve, fewer phantom trees.
+GROUND_STRIKE_BRIDGING = dict(max_missing_beams=2, bridge_range_jump=0.3)
+
 DETECTOR_DEFAULTS = dict(
     method="centroid", min_range=BODY_RANGE, min_points=3, min_width=0.04, max_radius=0.6,
-    max_residual=0.1, **CLASSIC_DETECTOR)
+    max_residual=0.1, **CLASSIC_DETECTOR, **GROUND_STRIKE_BRIDGING)
 
 PARAM_DEFAULTS = dict(
     # Motion: std = c_trans |trans| + c_rot |rot| + c_const (seed 000 Eq. 1), scaled for a
@@ -144,7 +154,7 @@ def steering_bias_from_gps(data: VictoriaPark, until: float | None = None,
 def detector_settings(**overrides) -> dict:
     """Keyword arguments of ``detect_trunks`` used for Victoria Park (``DETECTOR_DEFAULTS``)."""
     unknown = set(overrides) - set(DETECTOR_DEFAULTS) - {
-        "max_angle_gap", "max_missing_beams", "bridge_range_jump", "min_radius", "geometric_iterations", "num_hypotheses", "inlier_tol"}
+        "max_angle_gap", "min_radius", "geometric_iterations", "num_hypotheses", "inlier_tol"}
     if unknown:
         raise ValueError(f"detector_settings got unknown field(s) {sorted(unknown)}; expected "
                          f"keyword arguments of jaxslam.detect.detect_trunks")

@@ -190,3 +190,23 @@ def test_full_run_targets(park):
     assert result.gps.rmse <= 2.0
     assert 130 <= result.num_trees <= 200
     assert result.run_s <= 30.0
+
+
+@pytest.mark.skipif(not HAVE_DATA, reason=SKIP_REASON)
+def test_ground_strike_is_not_a_row_of_trunks(park):
+    """Scans 4719-4729: the laser hits the grass at ~25 m over tens of degrees with a dropout
+    every 2-4 beams. Split at every dropout this gave 3-8 'trunks' a scan within 1.5 m of
+    25.5 m (56 in the 11 scans); with the default bridging at most 3 detections a scan remain,
+    and at most 2 a scan in that band (7 in all: the arc ends and real trees at that range)."""
+    log = vpm.victoria_park_log(park)
+    scans = log.scan_ranges[4719:4730]
+    split = vps.detect_scans(scans, log.scan_angles, max_missing_beams=0)
+    bridged = vps.detect_scans(scans, log.scan_angles)
+
+    def in_band(obs):
+        return (np.asarray(obs.valid)
+                & (np.abs(np.asarray(obs.z[..., 0]) - 25.5) < 1.5)).sum(1)
+
+    assert in_band(split).min() >= 3 and in_band(split).sum() >= 50, in_band(split)
+    assert np.asarray(bridged.valid.sum(1)).max() <= 3, bridged.valid.sum(1)
+    assert in_band(bridged).max() <= 2 and in_band(bridged).sum() <= 10, in_band(bridged)
