@@ -38,6 +38,7 @@ from jaxslam.datasets.victoria_park import (
     VictoriaPark,
     filter_gps,
     gps_error,
+    rigid_align_2d,
     victoria_park_log,
 )
 from jaxslam.detect import detect_trunks
@@ -149,6 +150,70 @@ def steering_bias_from_gps(data: VictoriaPark, until: float | None = None,
 
     slope_0, slope_1 = slope(0.0), slope(0.01)
     return float(-slope_0 * 0.01 / (slope_1 - slope_0))
+
+
+def scan_rotations(observations: Observations, match_radius: float = 1.5,
+                   max_residual: float = 0.3, min_pairs: int = 3) -> np.ndarray:
+    """(T - 1,) heading change [rad] between consecutive scans from their trunk detections.
+
+    Detections of scans t and t+1 (sensor-frame points p_i, q_j) are paired by mutual nearest
+    neighbour within ``match_radius`` [m]; the 2-D rigid fit q = R(-d) p + c (closed-form
+    Kabsch) gives the vehicle's turn d. NaN where fewer than ``min_pairs`` pairs are found or
+    the RMS residual of the fit exceeds ``max_residual`` [m] (a wrong pairing). Host NumPy: a
+    calibration tool, about 1 s for the whole log.
+    """
+    valid = np.asarray(observations.valid, bool)
+    z = np.asarray(observations.z, np.float64)
+    points = np.stack([z[..., 0] * np.cos(z[..., 1]), z[..., 0] * np.sin(z[..., 1])], -1)
+    turns = np.full(valid.shape[0] - 1, np.nan)
+    for t in range(valid.shape[0] - 1):
+        before, after = points[t][valid[t]], points[t + 1][valid[t + 1]]
+        if min(len(before), len(after)) < min_pairs:
+            continue
+        distance = np.linalg.norm(before[:, None] - after[None], axis=-1)
+        nearest, back = distance.argmin(1), distance.argmin(0)
+        pair = ((back[nearest] == np.arange(len(before)))
+                & (distance[np.arange(len(before)), nearest] < match_radius))
+        if pair.sum() < min_pairs:
+            continue
+        source, target = before[pair], after[nearest[pair]]
+        angle, shift = rigid_align_2d(source, target)
+        rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        residual = target - source @ rotation.T - shift
+        if np.sqrt(np.mean(np.sum(residual ** 2, -1))) <= max_residual:
+            turns[t] = -angle  # the scene turns by -d when the vehicle turns by d
+    return turns
+
+
+def _dead_reckoned_turns(data: VictoriaPark, bias: float) -> np.ndarray:
+    """(S - 1,) heading change [rad] between laser times of the dead reckoning with ``bias``."""
+    _, yaw_rate = body_rates(np.stack([data.dr_speed, data.dr_steering + bias], -1),
+                             "ackermann", VICTORIA_PARK_VEHICLE)
+    heading = np.concatenate([[0.0], np.cumsum(np.diff(data.dr_time) * yaw_rate[:-1])])
+    return np.diff(np.interp(data.laser_time, data.dr_time, heading))
+
+
+def steering_bias_from_scans(data: VictoriaPark, observations: Observations,
+                             max_turn: float = 0.3) -> tuple[float, float]:
+    """Steering bias [rad] that makes the dead-reckoned turns match the laser's (no GPS).
+
+    With d_t the scan-to-scan turns (``scan_rotations``) and D_t(b) the dead-reckoned turn
+    between the same laser times with bias b (linear in a small b: D_t(b) = D_t(0) + b g_t,
+    g_t = (D_t(0.01) - D_t(0)) / 0.01), least squares gives
+    b = sum g_t (d_t - D_t(0)) / sum g_t^2 over the scans with a turn estimate below
+    ``max_turn``. Returns (bias, standard error), both in rad.
+    """
+    turns = scan_rotations(observations)
+    base = _dead_reckoned_turns(data, 0.0)
+    slope = (_dead_reckoned_turns(data, 0.01) - base) / 0.01
+    use = np.isfinite(turns) & (np.abs(turns) < max_turn)
+    if use.sum() < 10:
+        raise ValueError(f"steering_bias_from_scans: only {int(use.sum())} scan pairs with a "
+                         "turn estimate; expected at least 10 (too few trunks matched)")
+    x, y = slope[use], turns[use] - base[use]
+    bias = float(np.sum(x * y) / np.sum(x * x))
+    error = float(np.std(y - bias * x) / np.sqrt(np.sum(x * x)))
+    return bias, error
 
 
 def detector_settings(**overrides) -> dict:

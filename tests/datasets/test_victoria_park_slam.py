@@ -210,3 +210,54 @@ def test_ground_strike_is_not_a_row_of_trunks(park):
     assert in_band(split).min() >= 3 and in_band(split).sum() >= 50, in_band(split)
     assert np.asarray(bridged.valid.sum(1)).max() <= 3, bridged.valid.sum(1)
     assert in_band(bridged).max() <= 2 and in_band(bridged).sum() <= 10, in_band(bridged)
+
+
+def _observations_from_points(points_per_scan, max_obs=6):
+    """Padded Observations (T, max_obs) from lists of sensor-frame points."""
+    z = np.zeros((len(points_per_scan), max_obs, 2))
+    valid = np.zeros((len(points_per_scan), max_obs), bool)
+    for t, points in enumerate(points_per_scan):
+        for k, (x, y) in enumerate(points):
+            z[t, k] = np.hypot(x, y), np.arctan2(y, x)
+            valid[t, k] = True
+    return vps.Observations(z=jnp.asarray(z), valid=jnp.asarray(valid),
+                            radius=jnp.zeros(valid.shape), landmark_id=-jnp.ones(valid.shape,
+                                                                                 jnp.int32))
+
+
+def test_scan_rotations_recovers_known_turns():
+    """Trunks 8-20 m away seen from poses that turn by known angles (up to 0.04 rad a scan,
+    above the log's turns in a 0.2 s scan interval): the turn is recovered to 1e-9 (exact
+    rigid motion, float64); too few trunks or a bad pairing give NaN."""
+    rng = np.random.default_rng(4)
+    world = np.array([[8.0, -6.0], [10.0, 5.0], [14.0, -1.0], [17.0, 9.0], [19.0, -8.0],
+                      [20.0, 2.0]])
+    turns = np.array([0.02, -0.04, 0.0, 0.03])
+    poses = [np.zeros(3)]
+    for turn in turns:
+        x, y, h = poses[-1]
+        poses.append(np.array([x + 0.5 * np.cos(h), y + 0.5 * np.sin(h), h + turn]))
+
+    def seen_from(pose):
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        return (world - pose[:2]) @ np.array([[c, -s], [s, c]])
+
+    obs = _observations_from_points([seen_from(p) for p in poses])
+    np.testing.assert_allclose(vps.scan_rotations(obs), turns, atol=1e-9)
+    sparse = _observations_from_points([seen_from(poses[0])[:2], seen_from(poses[1])[:2]])
+    assert np.isnan(vps.scan_rotations(sparse)).all()
+    shuffled = seen_from(poses[1]) + rng.normal(0, 0.6, (6, 2))  # pairs, but no rigid fit
+    assert np.isnan(vps.scan_rotations(
+        _observations_from_points([seen_from(poses[0]), shuffled]), match_radius=5.0)).all()
+
+
+@pytest.mark.skipif(not HAVE_DATA, reason=SKIP_REASON)
+def test_steering_bias_from_scans_agrees_with_gps(park):
+    """Laser-only calibration (no GPS): 4.1 +- 0.3 mrad measured; the GPS course fit gives 5.2.
+    Both must agree within 2 mrad (the GPS course is noisy), and the laser estimate's standard
+    error must be below 1 mrad."""
+    log = vpm.victoria_park_log(park)
+    obs = vps.detect_scans(log.scan_ranges, log.scan_angles)
+    bias, error = vps.steering_bias_from_scans(park, obs)
+    assert error < 1e-3
+    assert abs(bias - vps.steering_bias_from_gps(park)) < 2e-3
