@@ -135,11 +135,12 @@ def test_controls_and_steering_bias(park):
     # Bias 0 reproduces the loader's dead reckoning exactly.
     np.testing.assert_allclose(vps.victoria_park_controls(park, 0.0),
                                vpm.dead_reckoning_controls(park), atol=1e-12)
-    # The GPS-course fit over the whole run gives the module constant (to 0.5 mrad), and the
-    # corrected dead reckoning is at least 2x closer to GPS than the raw one (91.8 -> 31 m).
-    bias = vps.steering_bias_from_gps(park)
-    assert abs(bias - vps.STEERING_BIAS) < 5e-4
+    # The laser-only calibration gives the module constant (to 0.2 mrad), and the corrected
+    # dead reckoning is at least 2x closer to GPS than the raw one (91.8 -> 37.8 m).
     log = vpm.victoria_park_log(park)
+    bias, _ = vps.steering_bias_from_scans(park, vps.detect_scans(log.scan_ranges,
+                                                                  log.scan_angles))
+    assert abs(bias - vps.STEERING_BIAS) < 2e-4
     raw = vpm.gps_error(log.time, vpm.dead_reckoning_path(park)[:, :2], log.gps_time,
                         log.gps_xy)
     fixed = vpm.gps_error(log.time, vpm.odometry_path(vps.victoria_park_controls(park))[:, :2],
