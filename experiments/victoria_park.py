@@ -4,7 +4,7 @@ Writes results/victoria_park/: results.md (tables), results.json (numbers), map.
 and path over the GPS track), mc_rmse.png (RMSE of the Monte Carlo runs).
 
     .venv/bin/python experiments/victoria_park.py [--particles 100] [--mc-runs 100]
-        [--mc-particles 10] [--scans N] [--out results/victoria_park]
+        [--mc-particles 100] [--scans N] [--out results/victoria_park]
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ def parse_args():
     parser.add_argument("--particles", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--mc-runs", type=int, default=100)
-    parser.add_argument("--mc-particles", type=int, default=10)
+    parser.add_argument("--mc-particles", type=int, default=100)
     parser.add_argument("--scans", type=int, default=None, help="prefix length (default all)")
     parser.add_argument("--out", default="results/victoria_park")
     return parser.parse_args()
@@ -93,7 +93,10 @@ def markdown(numbers) -> str:
         "| figure | jaxslam (centroid) | classic detector (README) |", "|---|---|---|",
         f"| beams used | < {vps.CLASSIC_DETECTOR['max_range']:.0f} m, > {vps.BODY_RANGE} m "
         "(body mask) | < 75 m |",
-        f"| segment split | range jump > {vps.CLASSIC_DETECTOR['range_jump']} m | > 1.5 m |",
+        f"| segment split | range jump > {vps.CLASSIC_DETECTOR['range_jump']} m; dropouts of "
+        f"<= {vps.GROUND_STRIKE_BRIDGING['max_missing_beams']} beams bridged when the ranges "
+        f"agree within {vps.GROUND_STRIKE_BRIDGING['bridge_range_jump']} m (ground strikes) "
+        "| > 1.5 m |",
         "| rejected | occluded, chord > 1 m, < 3 points, bad circle fit | occluded, > 1 m wide |",
         f"| trunks per scan (mean / max) | {det['per_scan_mean']:.2f} / {det['per_scan_max']} "
         "| at most 18 |",
@@ -109,6 +112,9 @@ def markdown(numbers) -> str:
         "(EKF-SLAM 1.4-1.8) |",
         f"| mean / median / max error [m] | {run['mean']:.2f} / {run['median']:.2f} / "
         f"{run['max']:.2f} | |",
+        f"| steering bias [rad]: used / laser-only fit / GPS course fit | "
+        f"{run['steering_bias']} / {run['laser_bias']:.4f} +- {run['laser_bias_se']:.4f} / "
+        f"{run['gps_bias']:.4f} | |",
         f"| dead-reckoning RMSE [m], raw / steering + {run['steering_bias']} rad | "
         f"{run['dead_reckoning_rmse']:.1f} / {run['corrected_dead_reckoning_rmse']:.1f} | |",
         f"| final tree count (best particle) | {run['num_trees']} | 130-200 (~150 known) |",
@@ -154,7 +160,10 @@ def main():
     corrected = vpm.gps_error(log.time[:steps],
                               vpm.odometry_path(vps.victoria_park_controls(data))[:steps, :2],
                               log.gps_time, log.gps_xy)
+    laser_bias, laser_bias_se = vps.steering_bias_from_scans(data, obs)
     numbers["run"] = dict(particles=args.particles, scans=steps, rmse=run.gps.rmse,
+                          laser_bias=laser_bias, laser_bias_se=laser_bias_se,
+                          gps_bias=vps.steering_bias_from_gps(data),
                           mean=run.gps.mean, median=run.gps.median, max=run.gps.max,
                           dead_reckoning_rmse=dead_reckoning.rmse,
                           corrected_dead_reckoning_rmse=corrected.rmse,
@@ -166,6 +175,10 @@ def main():
 
     if args.mc_runs > 0:
         mc_config = vps.victoria_park_config(num_particles=args.mc_particles)
+        # No progress bar inside one compiled call: say what to expect (runs x one run's time).
+        print(f"monte carlo: {args.mc_runs} runs x P={args.mc_particles} in one vmapped call; "
+              f"about {args.mc_runs * run.run_s * args.mc_particles / args.particles / 60:.0f} "
+              "min at the single run's speed", flush=True)
         batch = vps.run_victoria_park_batch(jax.random.key(args.seed + 1), data, args.mc_runs,
                                             mc_config, observations=obs, num_scans=args.scans)
         numbers["monte_carlo"] = dict(
