@@ -16,10 +16,8 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from jaxslam.geometry import range_bearing_jacobian_point, wrap_angle
+from jaxslam.geometry import LOG_2PI, range_bearing_jacobian_point, wrap_angle
 from jaxslam.types import Params
-
-_LOG_2PI = 1.8378770664093453
 
 
 class PredictedMeasurement(NamedTuple):
@@ -138,7 +136,7 @@ def mahalanobis_sq(z, predicted: PredictedMeasurement):
 
 def gaussian_log_likelihood(mahalanobis, log_det):
     """log N(nu; 0, S) = -d2/2 - log det S / 2 - log(2 pi) for 2-vectors."""
-    return -0.5 * mahalanobis - 0.5 * log_det - _LOG_2PI
+    return -0.5 * mahalanobis - 0.5 * log_det - LOG_2PI
 
 
 def unexplained_log_likelihood(z_range, params: Params):

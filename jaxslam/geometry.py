@@ -8,6 +8,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 TWO_PI = 2.0 * jnp.pi
+LOG_2PI = 1.8378770664093453  # log(2 pi), for Gaussian log-densities
 
 
 def wrap_angle(angle):

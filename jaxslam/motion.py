@@ -27,10 +27,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxslam.geometry import compose, relative, wrap_angle
+from jaxslam.geometry import LOG_2PI, compose, relative, wrap_angle
 from jaxslam.types import MOTION_MODELS, Params
-
-_LOG_2PI = 1.8378770664093453
 
 
 def odometry_from_relative(delta, min_translation):
@@ -147,7 +145,7 @@ def odometry_log_density(true_odometry, odometry, params: Params):
     std = odometry_std(odometry, params)
     diff = true_odometry - odometry
     diff = diff.at[..., 0].set(wrap_angle(diff[..., 0])).at[..., 2].set(wrap_angle(diff[..., 2]))
-    return jnp.sum(-0.5 * (diff / std) ** 2 - jnp.log(std) - 0.5 * _LOG_2PI, axis=-1)
+    return jnp.sum(-0.5 * (diff / std) ** 2 - jnp.log(std) - 0.5 * LOG_2PI, axis=-1)
 
 
 def motion_log_density(pose_prev, pose_next, control, params: Params,

@@ -30,11 +30,10 @@ import jax
 import jax.numpy as jnp
 
 from jaxslam.ekf import PredictedMeasurement
-from jaxslam.geometry import wrap_angle
+from jaxslam.geometry import LOG_2PI, wrap_angle
 from jaxslam.motion import control_to_odometry, motion_log_density, odometry_std, predict_pose
 from jaxslam.types import Params
 
-_LOG_2PI = 1.8378770664093453
 _POSE_JITTER = 1e-8
 
 
@@ -103,7 +102,7 @@ def gaussian_pose_log_density(pose, proposal: ObservationProposal):
     diff = diff.at[2].set(wrap_angle(diff[2]))
     white = jax.scipy.linalg.solve_triangular(proposal.chol, diff, lower=True)
     log_det = 2.0 * jnp.sum(jnp.log(jnp.diag(proposal.chol)))
-    return -0.5 * jnp.sum(white**2) - 0.5 * log_det - 1.5 * _LOG_2PI
+    return -0.5 * jnp.sum(white**2) - 0.5 * log_det - 1.5 * LOG_2PI
 
 
 def sample_gaussian_pose(key, proposal: ObservationProposal):
