@@ -171,18 +171,22 @@ def test_segment_end_to_end(park):
 @pytest.mark.slow
 @pytest.mark.skipif(not HAVE_DATA, reason=SKIP_REASON)
 def test_full_run_first_half(park):
-    # What is reached: P = 100 follows GPS over the first 3,500 scans (seed 0: RMSE 2.00 m,
-    # 107 trees, 29 s run). The bound leaves 1 m for other seeds.
+    # What is reached: over the first 3,500 scans (before the long unexplored drive west) 8
+    # runs at P = 100 follow GPS with RMSE 1.5-2.7 m, median 1.94 m (measured). Single runs
+    # can fail (other settings gave one 9-11 m run in 8), so the bounds are on the batch:
+    # median below 2.5 m and at least 6 of 8 runs below 3 m.
     config = vps.victoria_park_config(num_particles=100)
-    result = vps.run_victoria_park(jax.random.key(0), park, config, num_scans=3500)
-    assert result.gps.rmse < 3.0
+    batch = vps.run_victoria_park_batch(jax.random.key(0), park, 8, config, num_scans=3500)
+    assert np.median(batch.rmse) < 2.5, batch.rmse
+    assert np.sum(batch.rmse < 3.0) >= 6, batch.rmse
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="issue 7 targets not met: whole log, P=100, seed 0: RMSE 15.7 m vs "
-                          "GPS (target 2 m; the path leaves GPS at scans 4,500-5,500 where the "
-                          "steering bias drifts), 203 trees (target 130-200), 76 s run "
-                          "(target 30 s) on the shared 2-core CPU", strict=False)
+@pytest.mark.xfail(reason="issue 7 targets not met: whole log, P=100, seed 0: RMSE 18.4 m vs "
+                          "GPS (target 2 m; 100 runs: median 16.4 m, best 2.8 m; the heading "
+                          "is 10-30 degrees off when the vehicle leaves the mapped area for the "
+                          "unexplored western leg), 205 trees (target 130-200), run 23-26 s "
+                          "(target 30 s: met)", strict=False)
 @pytest.mark.skipif(not HAVE_DATA, reason=SKIP_REASON)
 def test_full_run_targets(park):
     result = vps.run_victoria_park(jax.random.key(0), park)
