@@ -69,7 +69,7 @@ def plot_map(run, dead_reckoning_error, out_png):
     plt.close(fig)
 
 
-def plot_mc(batch, out_png):
+def plot_mc(batch, particles, out_png):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -77,10 +77,16 @@ def plot_mc(batch, out_png):
 
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
     ax[0].hist(batch.rmse, bins=30)
+    ax[0].axvline(2.0, color="tab:red", ls="--", label="target 2 m")
     ax[0].set_xlabel("RMSE vs GPS [m]")
     ax[1].hist(batch.num_trees, bins=30)
+    ax[1].axvspan(130, 200, color="tab:green", alpha=0.15, label="target 130-200")
     ax[1].set_xlabel("final tree count")
-    fig.suptitle(f"{batch.rmse.size} Monte Carlo runs in one call")
+    for axis in ax:
+        axis.set_ylabel("runs")
+        axis.legend(fontsize=8)
+    fig.suptitle(f"{batch.rmse.size} Monte Carlo runs of the whole log, P = {particles}, "
+                 "in one call")
     fig.savefig(out_png, dpi=100, bbox_inches="tight")
     plt.close(fig)
 
@@ -189,10 +195,11 @@ def main():
             runs_within_2m=int(np.sum(batch.rmse <= 2.0)),
             trees_median=float(np.median(batch.num_trees)),
             trees_min=int(batch.num_trees.min()), trees_max=int(batch.num_trees.max()),
-            compile_s=batch.compile_s, run_s=batch.run_s, rmse=batch.rmse.tolist())
+            compile_s=batch.compile_s, run_s=batch.run_s, rmse=batch.rmse.tolist(),
+            num_trees=batch.num_trees.tolist())
         print("monte carlo:", {k: v for k, v in numbers["monte_carlo"].items() if k != "rmse"},
               flush=True)
-        plot_mc(batch, out / "mc_rmse.png")
+        plot_mc(batch, args.mc_particles, out / "mc_rmse.png")
 
     (out / "results.json").write_text(json.dumps(numbers, indent=2))
     (out / "results.md").write_text(markdown(numbers))
