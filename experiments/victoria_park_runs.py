@@ -1,0 +1,74 @@
+"""Victoria Park: R runs of one setting in one vmapped call, GPS RMSE per run (for comparisons).
+
+Each run r uses key fold_in(PRNGKey(0), r), so two settings see the same keys. Settings are
+``name=value`` pairs read with ``ast.literal_eval``:
+
+    .venv/bin/python experiments/victoria_park_runs.py --runs 8 --scans 3500
+    .venv/bin/python experiments/victoria_park_runs.py --runs 8 --steering-bias 0.0052 \\
+        --detector max_missing_beams=0 --params "bearing_noise=(0.0, 0.02)" \\
+        --config proposal='observation' match_pose_uncertainty=True
+
+Prints one line: RMSE [m] of each run, their median, the final tree counts and the run time.
+The comparisons quoted in ``victoria_park_slam`` and docs/results.md were made this way.
+"""
+from __future__ import annotations
+
+import argparse
+import ast
+
+import jax
+import numpy as np
+
+from jaxslam.datasets import victoria_park as vpm
+from jaxslam.datasets import victoria_park_slam as vps
+
+
+def settings(pairs: list[str], what: str) -> dict:
+    """``["a=1", "b=(0.0, 0.02)"]`` -> {"a": 1, "b": (0.0, 0.02)}, naming a malformed pair."""
+    out = {}
+    for pair in pairs:
+        name, sep, value = pair.partition("=")
+        if not sep:
+            raise SystemExit(f"--{what} {pair!r}: expected name=value")
+        try:
+            out[name.strip()] = ast.literal_eval(value.strip())
+        except (ValueError, SyntaxError):
+            raise SystemExit(f"--{what} {pair!r}: the value must be a Python literal "
+                             "(a number, a string in quotes, a tuple)") from None
+    return out
+
+
+def parse_args():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=8)
+    parser.add_argument("--particles", type=int, default=100)
+    parser.add_argument("--scans", type=int, default=None, help="prefix length (default all)")
+    parser.add_argument("--steering-bias", type=float, default=vps.STEERING_BIAS)
+    parser.add_argument("--config", nargs="*", default=[], help="FilterConfig fields")
+    parser.add_argument("--params", nargs="*", default=[], help="Params fields")
+    parser.add_argument("--detector", nargs="*", default=[], help="detect_trunks settings")
+    return parser.parse_args()
+
+
+def main():
+    args = parse_args()
+    data = vpm.load_victoria_park()
+    log = vpm.victoria_park_log(data)
+    obs = vps.detect_scans(log.scan_ranges, log.scan_angles,
+                           **settings(args.detector, "detector"))
+    config = vps.victoria_park_config(num_particles=args.particles,
+                                      **settings(args.config, "config"))
+    params = vps.victoria_park_params(config, **settings(args.params, "params"))
+    batch = vps.run_victoria_park_batch(jax.random.key(0), data, args.runs, config,
+                                        params=params, observations=obs,
+                                        num_scans=args.scans,
+                                        steering_bias=args.steering_bias)
+    print(f"rmse [m] {np.round(batch.rmse, 1).tolist()} median {np.median(batch.rmse):.2f} | "
+          f"trees {batch.num_trees.tolist()} | compile {batch.compile_s:.1f} s, "
+          f"run {batch.run_s:.0f} s | P={args.particles} scans={args.scans or 'all'} "
+          f"bias={args.steering_bias} config={args.config} params={args.params} "
+          f"detector={args.detector}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
