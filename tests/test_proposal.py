@@ -9,7 +9,7 @@ import pytest
 from scipy.stats import multivariate_normal
 
 from jaxslam import ekf, motion, proposal
-from jaxslam.filter import run_filter
+from jaxslam.filter import make_filter, run_filter
 from jaxslam.types import FilterConfig, Observations, default_params
 
 from test_filter import SENSOR_RANGE, simulate_circle  # noqa: E402  (tests/ is on sys.path)
@@ -332,8 +332,6 @@ def test_adaptive_ratio_rises_on_odometry_fault():
 
 def _mapped_state(config, params):
     """One step's state: every particle at PREV with the three LANDMARKS mapped exactly."""
-    from jaxslam.filter import make_filter
-
     state = make_filter(config).init(jnp.asarray(PREV), dtype=jnp.float64)
     slots = config.max_landmarks
     mean = np.zeros((config.num_particles, slots, 2))
@@ -355,8 +353,6 @@ def test_matching_at_x_hat_uses_pose_uncertainty(params, with_pose_uncertainty):
     sigmas (Sigma_u heading std 0.014 rad, d2 ~ 5). With Z = Hx Sigma_u Hx^T + S every
     observation matches its landmark and the sampled poses move to the true heading; with S
     alone none matches and three twins are born."""
-    from jaxslam.filter import make_filter
-
     config = FilterConfig(num_particles=16, max_landmarks=8, max_obs=3,
                           proposal="observation", match_pose_uncertainty=with_pose_uncertainty)
     offset = np.array([0.0, 0.0, 0.03])
