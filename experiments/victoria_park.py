@@ -49,9 +49,8 @@ def plot_map(run, dead_reckoning_error, out_png):
 
     gps = run.gps
     angle, shift = gps.rotation, gps.translation
-    rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
-    trees = run.landmark_mean[run.active] @ rotation.T + shift
-    path = run.path[:, :2] @ rotation.T + shift
+    trees = vpm.rigid_transform_2d(run.landmark_mean[run.active], angle, shift)
+    path = vpm.rigid_transform_2d(run.path[:, :2], angle, shift)
     fig, ax = plt.subplots(figsize=(9, 9))
     ax.plot(gps.gps_xy[:, 0], gps.gps_xy[:, 1], ".", color="0.5", ms=2, label="GPS (filtered)")
     ax.plot(dead_reckoning_error.aligned_xy[:, 0], dead_reckoning_error.aligned_xy[:, 1], "-",

@@ -22,5 +22,6 @@ from jaxslam.datasets.victoria_park import (
     gps_error,
     load_victoria_park,
     rigid_align_2d,
+    rigid_transform_2d,
     victoria_park_log,
 )

@@ -286,6 +286,14 @@ class GpsError(NamedTuple):
     gps_xy: np.ndarray
 
 
+def rigid_transform_2d(points, angle, translation):
+    """R(angle) p + translation for points (..., 2): rotation [rad], translation (2,)."""
+    cos, sin = np.cos(angle), np.sin(angle)
+    points = np.asarray(points, np.float64)
+    return np.stack([cos * points[..., 0] - sin * points[..., 1],
+                     sin * points[..., 0] + cos * points[..., 1]], -1) + translation
+
+
 def rigid_align_2d(source, target):
     """Least-squares rotation angle and translation mapping source (N, 2) onto target (N, 2).
 
@@ -296,8 +304,7 @@ def rigid_align_2d(source, target):
     dot = np.sum(source_c * target_c)
     cross = np.sum(source_c[:, 0] * target_c[:, 1] - source_c[:, 1] * target_c[:, 0])
     angle = np.arctan2(cross, dot)
-    rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
-    return float(angle), target.mean(0) - rotation @ source.mean(0)
+    return float(angle), target.mean(0) - rigid_transform_2d(source.mean(0), angle, 0.0)
 
 
 def gps_error(path_time, path_xy, gps_time, gps_xy, fit_until: float | None = None) -> GpsError:
@@ -311,8 +318,7 @@ def gps_error(path_time, path_xy, gps_time, gps_xy, fit_until: float | None = No
     at_gps = np.stack([np.interp(times, path_time, path_xy[:, i]) for i in range(2)], -1)
     fit = np.ones(times.shape, bool) if fit_until is None else times <= fit_until
     angle, translation = rigid_align_2d(at_gps[fit], targets[fit])
-    rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
-    aligned = at_gps @ rotation.T + translation
+    aligned = rigid_transform_2d(at_gps, angle, translation)
     error = np.linalg.norm(aligned - targets, axis=-1)
     return GpsError(mean=float(error.mean()), rmse=float(np.sqrt(np.mean(error ** 2))),
                     median=float(np.median(error)), max=float(error.max()), rotation=angle,

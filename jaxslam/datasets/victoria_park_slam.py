@@ -40,6 +40,7 @@ from jaxslam.datasets.victoria_park import (
     filter_gps,
     gps_error,
     rigid_align_2d,
+    rigid_transform_2d,
     victoria_park_log,
 )
 from jaxslam.detect import detect_trunks
@@ -54,7 +55,7 @@ BODY_RANGE = 1.5  # beams nearer than this hit the vehicle itself
 
 # Ground strikes: when the vehicle pitches, the laser hits the grass at a nearly constant
 # range (~25 m) over tens of degrees with a dropout every 2-4 beams (e.g. scans 4715-4730).
-# Split at every dropout, each piece passed as a trunk (7-11 per scan) and was matched to old
+# Split at every dropout, each piece passed as a trunk (6-11 per scan) and was matched to old
 # landmarks. Bridging up to 2 missing beams where the ranges agree within 0.3 m keeps such an
 # arc one wide segment (rejected); trunks beside a dropout and a neighbour at another range
 # stay apart. It removes 928 of 30,266 detections. P=100, 8 runs: first 3,500 scans, GPS
@@ -186,8 +187,7 @@ def scan_rotations(observations: Observations, match_radius: float = 1.5,
             continue
         source, target = before[pair], after[nearest[pair]]
         angle, shift = rigid_align_2d(source, target)
-        rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
-        residual = target - source @ rotation.T - shift
+        residual = target - rigid_transform_2d(source, angle, shift)
         if np.sqrt(np.mean(np.sum(residual ** 2, -1))) <= max_residual:
             turns[t] = -angle  # the scene turns by -d when the vehicle turns by d
     return turns

@@ -104,6 +104,9 @@ def test_rigid_align_recovers_a_known_transform():
     np.testing.assert_allclose(got_shift, target.mean(0) - reference @ source.mean(0),
                                atol=1e-10)
     assert got_angle == pytest.approx(angle, abs=1e-3)
+    # The transform helper is the same rotation matrix plus the shift (float64, 1e-12).
+    np.testing.assert_allclose(vpm.rigid_transform_2d(source, angle, shift),
+                               source @ rotation.T + shift, atol=1e-12)
 
 
 def test_gps_error_of_a_transformed_copy_is_zero():
