@@ -247,15 +247,17 @@ def _observe(config: FilterConfig, params: Params, particle: Particles, found: _
     obs_of_slot = jnp.full((num_slots,), -1, jnp.int32).at[slot_of_obs].set(
         jnp.arange(match.shape[0], dtype=jnp.int32), mode="drop")
     matched_slot = obs_of_slot >= 0
-    z_of_slot = obs.z[jnp.clip(obs_of_slot, 0)]
 
+    # Only the <= K matched landmarks are predicted again and updated: rows (K,) gathers each
+    # observation's landmark (slot 0 for unmatched rows, whose results are dropped below).
+    rows = jnp.clip(match, 0)
+    mean_k, cov_k = particle.landmark_mean[rows], particle.landmark_cov[rows]
     if config.proposal == "motion":
-        predicted = found.predicted  # association was computed at this very pose
+        # The association was computed at this very pose.
+        pred_k = jax.tree.map(lambda leaf: leaf[rows], found.predicted)
     else:
-        predicted = ekf.predict_measurements(particle.pose, particle.landmark_mean,
-                                             particle.landmark_cov, params)
+        pred_k = ekf.predict_measurements(particle.pose, mean_k, cov_k, params)
     # Per-observation likelihood at the particle's pose.
-    pred_k = jax.tree.map(lambda leaf: leaf[jnp.clip(match, 0)], predicted)
     d_range = obs.z[:, 0] - pred_k.range
     d_bearing = wrap_angle(obs.z[:, 1] - pred_k.bearing)
     mahalanobis_k = (d_range**2 * pred_k.i_rr + 2.0 * d_range * d_bearing * pred_k.i_rb
@@ -265,10 +267,10 @@ def _observe(config: FilterConfig, params: Params, particle: Particles, found: _
     log_likelihood = jnp.sum(jnp.where(obs.valid, jnp.where(matched_obs, matched_ll,
                                                             unexplained_ll), 0.0))
 
-    new_mean, new_cov = ekf.update_landmarks(particle.landmark_mean, particle.landmark_cov,
-                                             predicted, z_of_slot, params)
-    mean = jnp.where(matched_slot[:, None], new_mean, particle.landmark_mean)
-    cov = jnp.where(matched_slot[:, None], new_cov, particle.landmark_cov)
+    new_mean, new_cov = ekf.update_landmarks(mean_k, cov_k, pred_k, obs.z, params)
+    # One-to-one matching: no two observations write the same slot.
+    mean = particle.landmark_mean.at[slot_of_obs].set(new_mean, mode="drop")
+    cov = particle.landmark_cov.at[slot_of_obs].set(new_cov, mode="drop")
     radius_obs = obs.radius[jnp.clip(obs_of_slot, 0)]
     count = particle.observation_count + matched_slot.astype(jnp.int32)
     # Running mean of measured radii; a landmark with no radius yet (0) takes the first one.
