@@ -212,16 +212,17 @@ def _associate(config: FilterConfig, params: Params, particle: Particles, match_
     """
     predicted = ekf.predict_measurements(match_pose, particle.landmark_mean,
                                          particle.landmark_cov, params)
-    matching = predicted if pose_cov is None else ekf.add_pose_uncertainty(predicted, pose_cov)
     window = config.association_window
     if 0 < window < config.max_landmarks:
         # Pair work on the N nearest active landmarks only; results mapped back to slots.
         _, slots = jax.lax.top_k(-jnp.where(particle.active, predicted.range, jnp.inf), window)
         local = particle._replace(active=particle.active[slots],
                                   landmark_id=particle.landmark_id[slots])
-        local_predicted = jax.tree.map(lambda leaf: leaf[slots], matching)
+        local_predicted = jax.tree.map(lambda leaf: leaf[slots], predicted)
     else:
-        slots, local, local_predicted = None, particle, matching
+        slots, local, local_predicted = None, particle, predicted
+    if pose_cov is not None:  # on the window only: elementwise per landmark
+        local_predicted = ekf.add_pose_uncertainty(local_predicted, pose_cov)
     mahalanobis = ekf.mahalanobis_sq(obs.z, local_predicted)
     mahalanobis = jnp.where(obs.valid[:, None] & local.active[None, :], mahalanobis, jnp.inf)
     vis = landmarks.visibility(obs.z, obs.valid, local.active, local_predicted, mahalanobis,
