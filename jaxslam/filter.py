@@ -193,7 +193,10 @@ class _Association(NamedTuple):
     match: jnp.ndarray  # (K,) landmark slot or -1
     rounds: jnp.ndarray  # () matching rounds
     visibility: landmarks.Visibility
-    predicted: ekf.PredictedMeasurement  # (M,) fields, at the matching pose
+    # At the matching pose, over the N landmarks of the association window (all M slots
+    # without a window); local_match (K,) indexes it (-1: unmatched).
+    predicted: ekf.PredictedMeasurement
+    local_match: jnp.ndarray
 
 
 def _to_slots(window_values, slots, num_slots: int):
@@ -208,33 +211,40 @@ def _associate(config: FilterConfig, params: Params, particle: Particles, match_
     ``match_pose`` is the sampled pose for the motion proposal and the motion prediction x_hat
     for the observation and mixture proposals (computed once, shared with the proposal).
     ``pose_cov`` (3, 3), when given, is added to the matching covariance
-    (``ekf.add_pose_uncertainty``); the returned ``predicted`` keeps S without it.
+    (``ekf.add_pose_uncertainty``); the returned ``predicted`` keeps S without it. With an
+    association window only its N landmarks are predicted (``_Association``).
     """
-    predicted = ekf.predict_measurements(match_pose, particle.landmark_mean,
-                                         particle.landmark_cov, params)
     window = config.association_window
     if 0 < window < config.max_landmarks:
-        # Pair work on the N nearest active landmarks only; results mapped back to slots.
-        _, slots = jax.lax.top_k(-jnp.where(particle.active, predicted.range, jnp.inf), window)
-        local = particle._replace(active=particle.active[slots],
+        # Predictions and pair work on the N nearest active landmarks only; the match is
+        # mapped back to slots.
+        distance = jnp.hypot(particle.landmark_mean[:, 0] - match_pose[0],
+                             particle.landmark_mean[:, 1] - match_pose[1])
+        _, slots = jax.lax.top_k(-jnp.where(particle.active, distance, jnp.inf), window)
+        local = particle._replace(landmark_mean=particle.landmark_mean[slots],
+                                  landmark_cov=particle.landmark_cov[slots],
+                                  active=particle.active[slots],
                                   landmark_id=particle.landmark_id[slots])
-        local_predicted = jax.tree.map(lambda leaf: leaf[slots], predicted)
     else:
-        slots, local, local_predicted = None, particle, predicted
-    if pose_cov is not None:  # on the window only: elementwise per landmark
-        local_predicted = ekf.add_pose_uncertainty(local_predicted, pose_cov)
+        slots, local = None, particle
+    predicted = ekf.predict_measurements(match_pose, local.landmark_mean, local.landmark_cov,
+                                         params)
+    local_predicted = (predicted if pose_cov is None
+                       else ekf.add_pose_uncertainty(predicted, pose_cov))
     mahalanobis = ekf.mahalanobis_sq(obs.z, local_predicted)
     mahalanobis = jnp.where(obs.valid[:, None] & local.active[None, :], mahalanobis, jnp.inf)
     vis = landmarks.visibility(obs.z, obs.valid, local.active, local_predicted, mahalanobis,
                                params, config.boundary)
     cost = _association_cost(config, obs, local, mahalanobis, vis)
-    match, rounds = association.match(config.association, cost, params.association_gate,
-                                      config.match_rounds)
+    local_match, rounds = association.match(config.association, cost,
+                                            params.association_gate, config.match_rounds)
+    match = local_match
     if slots is not None:
-        match = jnp.where(match >= 0, slots[jnp.clip(match, 0)], -1).astype(jnp.int32)
+        match = jnp.where(local_match >= 0, slots[jnp.clip(local_match, 0)],
+                          -1).astype(jnp.int32)
         vis = vis._replace(**{name: _to_slots(getattr(vis, name), slots, config.max_landmarks)
                               for name in ("matchable", "explained", "expected")})
-    return _Association(match, rounds, vis, predicted)
+    return _Association(match, rounds, vis, predicted, local_match)
 
 
 def _observe(config: FilterConfig, params: Params, particle: Particles, found: _Association,
@@ -255,7 +265,8 @@ def _observe(config: FilterConfig, params: Params, particle: Particles, found: _
     mean_k, cov_k = particle.landmark_mean[rows], particle.landmark_cov[rows]
     if config.proposal == "motion":
         # The association was computed at this very pose.
-        pred_k = jax.tree.map(lambda leaf: leaf[rows], found.predicted)
+        pred_k = jax.tree.map(lambda leaf: leaf[jnp.clip(found.local_match, 0)],
+                              found.predicted)
     else:
         pred_k = ekf.predict_measurements(particle.pose, mean_k, cov_k, params)
     # Per-observation likelihood at the particle's pose.
@@ -337,7 +348,7 @@ def _propose(config, key, params, particles: Particles, control, obs, ratio):
         pose_cov = proposal.motion_pose_covariance(particle.pose, control, params, motion)
         found = _associate(config, params, particle, x_hat, obs,
                            pose_cov if config.match_pose_uncertainty else None)
-        gaussian = proposal.observation_proposal(x_hat, pose_cov, obs.z, found.match,
+        gaussian = proposal.observation_proposal(x_hat, pose_cov, obs.z, found.local_match,
                                                  found.predicted)
         pose, used_obs = proposal.mixture_sample(k, motion_sample, gaussian, ratio)
         correction = proposal.mixture_log_correction(particle.pose, pose, control, params,

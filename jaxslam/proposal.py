@@ -71,7 +71,8 @@ def observation_proposal(predicted_pose, pose_cov, z, match, predicted: Predicte
 
     Args:
       predicted_pose: (3,) x_hat; pose_cov: (3, 3) Sigma_u; z: (K, 2);
-      match: (K,) int32 landmark of each observation or -1; predicted: at x_hat, (M,) fields.
+      match: (K,) int32 row of ``predicted`` matched by each observation, or -1;
+      predicted: at x_hat, (N,) fields (the particle's landmarks, or a window of them).
     """
     matched = match >= 0
     slot = jnp.clip(match, 0, predicted.range.shape[0] - 1)
