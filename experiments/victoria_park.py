@@ -90,6 +90,19 @@ def plot_mc(batch, particles, out_png):
     plt.close(fig)
 
 
+def settings_line() -> str:
+    """The filter settings behind the tables (``victoria_park_config`` / ``_params``)."""
+    config = vps.victoria_park_config()
+    noise = vps.MOTION_NOISE
+    return (f"{config.proposal} proposal (pose-uncertainty matching "
+            f"{'on' if config.match_pose_uncertainty else 'off'}), {config.association} "
+            f"matching over the {config.association_window} nearest landmarks, "
+            f"{config.boundary} boundary, M = {config.max_landmarks}, K = {config.max_obs}; "
+            f"motion noise rot {noise['rot1_noise']}, trans {noise['trans_noise']} "
+            f"(seed 000 Eq. 1); observation noise range "
+            f"{vps.PARAM_DEFAULTS['range_noise']}, bearing {vps.PARAM_DEFAULTS['bearing_noise']}")
+
+
 def markdown(numbers) -> str:
     det, run, mc = numbers["detection"], numbers["run"], numbers.get("monte_carlo")
     lines = [
@@ -112,6 +125,7 @@ def markdown(numbers) -> str:
         f"| median radius [m] | {det['radius_median']:.2f} | |",
         f"| time, compile+run / run [s] | {det['first_s']:.2f} / {det['run_s']:.2f} | |", "",
         f"## FastSLAM, P = {run['particles']}, {run['scans']} scans", "",
+        f"Settings: {settings_line()}.", "",
         "| metric | value | target |", "|---|---|---|",
         f"| RMSE vs GPS [m] (rigid fit, outliers removed) | {run['rmse']:.2f} | <= 2 "
         "(EKF-SLAM 1.4-1.8) |",
