@@ -171,22 +171,23 @@ def test_segment_end_to_end(park):
 @pytest.mark.slow
 @pytest.mark.skipif(not HAVE_DATA, reason=SKIP_REASON)
 def test_full_run_first_half(park):
-    # What is reached: over the first 3,500 scans (before the long unexplored drive west) 8
-    # runs at P = 100 follow GPS with RMSE 1.5-2.7 m, median 1.94 m (measured). Single runs
-    # can fail (other settings gave one 9-11 m run in 8), so the bounds are on the batch:
-    # median below 2.5 m and at least 6 of 8 runs below 3 m.
+    # What is reached: over the first 3,500 scans (before the long western legs) 8 runs at
+    # P = 100 with the default settings follow GPS with RMSE 1.2-1.6 m, median 1.37 m
+    # (measured with experiments/victoria_park_runs.py --runs 8 --scans 3500). Bounds with
+    # 0.6-0.9 m of slack (other CPUs round differently, and the runs are chaotic): median
+    # below 2 m, every run below 2.5 m.
     config = vps.victoria_park_config(num_particles=100)
     batch = vps.run_victoria_park_batch(jax.random.key(0), park, 8, config, num_scans=3500)
-    assert np.median(batch.rmse) < 2.5, batch.rmse
-    assert np.sum(batch.rmse < 3.0) >= 6, batch.rmse
+    assert np.median(batch.rmse) < 2.0, batch.rmse
+    assert np.all(batch.rmse < 2.5), batch.rmse
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="issue 7 targets not met: whole log, P=100, seed 0: RMSE 18.4 m vs "
-                          "GPS (target 2 m; 100 runs: median 16.4 m, best 2.8 m; the heading "
-                          "is 10-30 degrees off when the vehicle leaves the mapped area for the "
-                          "unexplored western leg), 205 trees (target 130-200), run 23-26 s "
-                          "(target 30 s: met)", strict=False)
+@pytest.mark.xfail(reason="issue 7 accuracy target not met: whole log, P=100, seed 0: RMSE "
+                          "5.7 m vs GPS (target 2 m; 100 runs: median 5.5 m, 10-90% 4.6-6.6 m, "
+                          "best 3.8 m; the heading drifts on the western legs with few trees); "
+                          "153 trees (target 130-200: met), run 15.3 s (target 30 s: met)",
+                   strict=False)
 @pytest.mark.skipif(not HAVE_DATA, reason=SKIP_REASON)
 def test_full_run_targets(park):
     result = vps.run_victoria_park(jax.random.key(0), park)
