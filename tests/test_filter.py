@@ -10,11 +10,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxslam.filter import (StepInfo, estimate, make_filter, run_filter, scan_filter,
+from jaxslam.filter import (estimate, make_filter, run_filter, scan_filter,
                             validate_observations)
 import jaxslam.filter as filter_module
-from jaxslam.types import (FilterConfig, FilterState, Particles, default_params,
-                           empty_observations, make_observations)
+from jaxslam.types import (FilterConfig, FilterState, default_params, empty_observations,
+                           make_observations)
 
 EDGE = FilterConfig(num_particles=4, max_landmarks=4, max_obs=3, boundary="loose")
 F32 = jnp.float32
