@@ -1,5 +1,4 @@
 """The ``jaxslam`` command: fast --help, lazy imports, bad configs exit 2, export, run, study."""
-import os
 import subprocess
 import sys
 import time
