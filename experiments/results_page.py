@@ -57,7 +57,7 @@ FINDINGS = {
         "independent of the tuning runs): GPS RMSE median 5.5 m, 10-90% 4.6-6.6 m, best "
         "3.8 m, worst 15.6 m; final trees median 168 (152-185). A single run takes 15-21 s "
         "after compilation (five timings on this machine). What changed from the previous 16.4 m median "
-        "(10-90% 8.6-37 m): the motion noise was about 3x the measured mismatch between the "
+        "(10-90% 8.6-37 m): the motion noise was ~2.7x the measured mismatch between the "
         "dead-reckoned and the laser-seen turns (4.4 mrad rms a scan); a sweep of its scale "
         "(16 runs each) gave medians 16.4 / 10.4 / 6.8 / 5.8 / 5.1 / 21.1 m at x1 / 1/2 / 1/4 / "
         "1/8 / 1/16 / 1/32 (1/32 breaks down with duplicated trees), and the observation "

@@ -59,7 +59,8 @@ BODY_RANGE = 1.5  # beams nearer than this hit the vehicle itself
 # Split at every dropout, each piece passed as a trunk (6-11 per scan) and was matched to old
 # landmarks. Bridging up to 2 missing beams where the ranges agree within 0.3 m keeps such an
 # arc one wide segment (rejected); trunks beside a dropout and a neighbour at another range
-# stay apart. It removes 928 of 30,266 detections. P=100, 8 runs: first 3,500 scans, GPS
+# stay apart. It removes 928 of 30,266 detections. P=100, 8 runs, with the earlier x1 motion
+# noise and the motion proposal (see ``MOTION_NOISE``): first 3,500 scans, GPS
 # RMSE median 1.94 m (1.72 without), trees 97-101 (104-108 without); whole log (bias
 # 0.0052), 17.6 m (15.5 without), trees median 198 (208 without): no accuracy change that 8
 # runs can resolve, fewer phantom trees.
@@ -116,10 +117,11 @@ PARAM_DEFAULTS = dict(
 # GPS course fit ``steering_bias_from_gps`` gives 0.0052, which suits pure dead reckoning
 # (31.3 m RMSE against GPS vs 37.8 m with 0.0041; 91.8 m raw). The laser fit is used so that
 # GPS serves only as the evaluation truth. Effect on the filter (P=100, GPS RMSE median over
-# runs): first 3,500 scans, 8 runs: 1.94 m (0.0041) vs 1.91 m (0.0052); whole log, 8 runs:
-# 10.2 m (0.0040), 11.0 m (0.0030), 17.6 m (0.0052); whole log, 100 runs at 0.0041: 16.4 m
-# (10-90% 8.6-37 m). The 8-run medians are within the run-to-run spread: no setting is
-# shown better than another on the whole log.
+# runs, with the earlier x1 motion noise and the motion proposal): first 3,500 scans, 8
+# runs: 1.94 m (0.0041) vs 1.91 m (0.0052); whole log, 8 runs: 10.2 m (0.0040), 11.0 m
+# (0.0030), 17.6 m (0.0052); whole log, 100 runs at 0.0041: 16.4 m (10-90% 8.6-37 m). The
+# 8-run medians are within the run-to-run spread: no setting is shown better than another
+# on the whole log. The bias was not re-swept with ``MOTION_NOISE``.
 STEERING_BIAS = 0.0041
 
 
@@ -332,7 +334,8 @@ def victoria_park_config(num_particles: int = 100, max_landmarks: int = 320,
                          max_obs: int = CLASSIC_MAX_TRUNKS, **fields) -> FilterConfig:
     """``FilterConfig`` for Victoria Park: odometry controls, stable matching, loose boundary,
     association against each particle's 48 nearest landmarks (at most ~15 trunks are seen per
-    scan; seed 0 gave the same run as the full association, 18 s instead of 24 s), and the
+    scan; with the earlier x1 motion noise and the motion proposal, seed 0 gave the same run
+    as the full association, 18 s instead of 24 s), and the
     observation proposal (FastSLAM 2.0) matching at the motion prediction with the pose
     uncertainty added (``match_pose_uncertainty``). Whole log, P=100, 16 runs, GPS RMSE
     median: at 1/4 of the first motion noise, 6.8 m with this proposal and 7.9 m with the
