@@ -38,12 +38,23 @@ def settings(pairs: list[str], what: str) -> dict:
     return out
 
 
+def steering_bias(text: str):
+    if text == "laser":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected 'laser' or a number [rad]")
+
+
 def parse_args():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=8)
     parser.add_argument("--particles", type=int, default=100)
     parser.add_argument("--scans", type=int, default=None, help="prefix length (default all)")
-    parser.add_argument("--steering-bias", type=float, default=vps.STEERING_BIAS)
+    parser.add_argument("--steering-bias", type=steering_bias, default="laser",
+                        help="'laser' (default: the steering_bias_profile of the scans) or a "
+                             f"constant [rad], e.g. {vps.STEERING_BIAS}")
     parser.add_argument("--config", nargs="*", default=[], help="FilterConfig fields")
     parser.add_argument("--params", nargs="*", default=[], help="Params fields")
     parser.add_argument("--detector", nargs="*", default=[], help="detect_trunks settings")

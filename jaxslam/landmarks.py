@@ -43,7 +43,8 @@ class Visibility(NamedTuple):
     explained: (M,) landmarks a set-aside observation could explain (kept from penalties).
     expected: (M,) matchable landmarks the sensor should have reported: when all K
       observation rows are valid the detector may have dropped farther trunks (detectors and
-      simulators keep the K nearest), so only landmarks up to the farthest observation count.
+      simulators keep the K nearest), so only landmarks up to the farthest observation count;
+      and only those predicted within ``params.miss_range``.
     """
 
     usable_obs: jnp.ndarray
@@ -64,7 +65,7 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
     in_min_range = predicted.range >= params.min_range
     saturated = jnp.all(obs_valid)
     horizon = jnp.where(saturated, jnp.max(jnp.where(obs_valid, z[:, 0], 0.0)), jnp.inf)
-    within_horizon = predicted.range <= horizon
+    within_horizon = (predicted.range <= horizon) & (predicted.range <= params.miss_range)
     # Observations nearer than min_range could never match (no landmark there is matchable)
     # and would create a twin every step.
     obs_valid = obs_valid & (z[:, 0] >= params.min_range)

@@ -146,6 +146,10 @@ class Params(NamedTuple):
         are zero, so without a floor the covariance is singular at distance 0.
     Sensor:
       max_range / min_range: visibility limits [m].
+      miss_range: landmarks predicted farther than this [m] are not counted as missed when
+        no observation matches them (no existence penalty), though they still match and
+        update up to ``max_range``. For detectors that find far trunks only now and then;
+        default +inf (every matchable landmark inside the detection horizon can be missed).
     Association and map management:
       association_gate: squared Mahalanobis distance above which a pair is never formed.
         Default 25 (5 sigma), wider than the chi-square 99% quantile 9.21 because the
@@ -186,6 +190,7 @@ class Params(NamedTuple):
     bearing_std_floor: jnp.ndarray
     max_range: jnp.ndarray
     min_range: jnp.ndarray
+    miss_range: jnp.ndarray
     association_gate: jnp.ndarray
     new_landmark_log_offset: jnp.ndarray
     detection_probability: jnp.ndarray
@@ -227,6 +232,7 @@ def default_params(config: FilterConfig | None = None, dtype=jnp.float32, **over
         bearing_std_floor=0.001,
         max_range=20.0,
         min_range=0.1,
+        miss_range=float("inf"),
         association_gate=gate,
         new_landmark_log_offset=0.0,
         detection_probability=0.9,

@@ -137,6 +137,36 @@ def test_visibility_loose_inside_is_normal():
     assert not bool(vis.set_aside_obs[0]) and not bool(vis.explained[0])
 
 
+@pytest.mark.parametrize("boundary", ["hard", "loose"])
+def test_miss_range_spares_far_landmarks_from_misses_only(boundary):
+    """A landmark beyond ``miss_range`` still matches and updates; it is just not expected."""
+    params = default_params(dtype=jnp.float64, max_range=45.0)
+    pose = jnp.zeros(3)
+    mean = jnp.asarray([[10.0, 0.0], [38.0, 5.0]])  # ranges 10 m and 38.3 m
+    cov = jnp.asarray([[1e-4, 0.0, 1e-4]] * 2)
+    predicted = ekf.predict_measurements(pose, mean, cov, params)
+    # One observation elsewhere (no match for either landmark); the second row is padding, so
+    # the detector is not saturated and its farthest report sets no horizon.
+    z = jnp.asarray([[5.0, 1.0], [0.0, 0.0]])
+    d2 = ekf.mahalanobis_sq(z, predicted)
+    valid, active = jnp.asarray([True, False]), jnp.asarray([True, True])
+
+    def expected(miss_range):
+        vis = landmarks.visibility(z, valid, active, predicted, d2,
+                                   params._replace(miss_range=miss_range), boundary)
+        return vis.matchable, vis.expected
+
+    matchable, default = expected(params.miss_range)  # +inf: both can be missed
+    np.testing.assert_array_equal(matchable, [True, True])
+    np.testing.assert_array_equal(default, [True, True])
+    np.testing.assert_array_equal(expected(jnp.asarray(30.0))[1], [True, False])
+    np.testing.assert_array_equal(expected(jnp.asarray(5.0))[1], [False, False])
+    # The same under jit and vmap over a sweep of miss_range (a dynamic parameter).
+    sweep = jnp.asarray([jnp.inf, 30.0, 5.0])
+    _, swept = jax.jit(jax.vmap(expected))(sweep)
+    np.testing.assert_array_equal(swept, [[True, True], [True, False], [False, False]])
+
+
 def test_visibility_rejects_unknown_boundary():
     with pytest.raises(ValueError, match="boundary"):
         visibility_case(10.0, 10.0, "soft")

@@ -7,12 +7,15 @@ Pipeline (one filter step per laser scan, T = 7230 for the whole run):
      and are treated as no return.
   2. ``victoria_park_controls``: (rot1, trans, rot2) moves integrated from the 40 Hz Ackermann
      dead reckoning between laser times (the pose is the laser's), with the steering angle
-     corrected by ``STEERING_BIAS`` (the raw dead-reckoning heading turns slower than the
-     laser sees it turn; ``steering_bias_from_scans`` measures the bias from the scans
-     alone, ``steering_bias_from_gps`` from the GPS course).
+     corrected by a bias (the raw dead-reckoning heading turns slower than the laser sees it
+     turn). By default the bias varies along the log: ``steering_bias_profile`` fits it in
+     600-scan windows to the scan-to-scan turns of the laser alone (no GPS);
+     ``steering_bias_from_scans`` gives one constant (``STEERING_BIAS``) the same way and
+     ``steering_bias_from_gps`` one from the GPS course.
      ``victoria_park_config`` / ``victoria_park_params``: odometry motion model, the
      observation proposal, small motion noise (``MOTION_NOISE``), metre-level trunk
-     observation noise, a 30 m matching range, and long-lived landmarks (``existence_max``
+     observation noise, a 45 m matching range (misses counted within 30 m), and
+     long-lived landmarks (``existence_max``
      = 30: a tree seen often is not deleted by the misses of an occluded stretch; with the
      default 6 every tree was forgotten after ~36 misses, loops never closed and the path
      drifted like dead reckoning).
@@ -95,7 +98,14 @@ PARAM_DEFAULTS = dict(
     bearing_noise=(0.0, 0.04),
     range_std_floor=0.05,
     bearing_std_floor=0.005,
-    max_range=30.0,
+    # Trunks are matched out to 45 m, but only those predicted within 30 m count as missed
+    # when unseen: far trunks are detected now and then, and a 45 m miss range deleted most
+    # of the map (72-84 trees). Whole log, P=100, 16 runs (keys fold_in(key(0), r)), constant
+    # steering bias, GPS RMSE median: 30 m / 30 m 5.8 m (trees 156-180); 45 m / 30 m 5.3 m
+    # (178-188); 60 m / 30 m 4.9 m (196-215: over the ~150 trees, so not taken); 45 m / 45 m
+    # 10.5 m (72-84).
+    max_range=45.0,
+    miss_range=30.0,
     min_range=BODY_RANGE,
     association_gate=13.8,  # chi-square 2 dof, 99.9 %
     airlock_sigmas=float(np.sqrt(13.8)),
@@ -125,9 +135,11 @@ PARAM_DEFAULTS = dict(
 STEERING_BIAS = 0.0041
 
 
-def victoria_park_controls(data: VictoriaPark, steering_bias: float = STEERING_BIAS,
+def victoria_park_controls(data: VictoriaPark, steering_bias=STEERING_BIAS,
                            speed_scale: float = 1.0) -> np.ndarray:
-    """(S, 3) odometry moves between laser times, steering corrected by ``steering_bias``.
+    """(S, 3) odometry moves between laser times, steering corrected by ``steering_bias``
+    [rad]: a number, or a (D,) array over the dead-reckoning samples
+    (``steering_bias_profile``).
 
     The Ackermann dead reckoning (v * speed_scale, alpha + steering_bias) is integrated by
     ``log_format.integrate_controls`` exactly as ``victoria_park.dead_reckoning_controls``
@@ -137,6 +149,10 @@ def victoria_park_controls(data: VictoriaPark, steering_bias: float = STEERING_B
     default: these moves are integrated dead reckoning, not jittering poses, and on the whole
     log (P=100, seeds 0-3) 1 mm gave GPS RMSE 13.4-17.2 m where 1 cm gave 12.0-39.4 m.
     """
+    steering_bias = np.asarray(steering_bias, np.float64)
+    if steering_bias.ndim and steering_bias.shape != data.dr_steering.shape:
+        raise ValueError(f"steering_bias has shape {steering_bias.shape}; expected a number or "
+                         f"one value per dead-reckoning sample {data.dr_steering.shape}")
     inputs = np.stack([data.dr_speed * speed_scale, data.dr_steering + steering_bias], -1)
     return integrate_controls(data.dr_time, inputs, data.laser_time, "ackermann",
                               VICTORIA_PARK_VEHICLE, min_translation=VP_MIN_TRANSLATION)
@@ -218,6 +234,15 @@ def _dead_reckoned_turns(data: VictoriaPark, bias: float) -> np.ndarray:
     return np.diff(np.interp(data.laser_time, data.dr_time, heading))
 
 
+def _turn_residuals(data: VictoriaPark, turns: np.ndarray, max_turn: float):
+    """Per scan pair t (T - 1 of them): whether the laser turn d_t is usable, the sensitivity
+    g_t = dD_t/db of the dead-reckoned turn to the steering bias, and d_t - D_t(0)."""
+    base = _dead_reckoned_turns(data, 0.0)[:turns.size]
+    slope = (_dead_reckoned_turns(data, 0.01)[:turns.size] - base) / 0.01
+    use = np.isfinite(turns) & (np.abs(turns) < max_turn)
+    return use, np.where(use, slope, 0.0), np.where(use, turns - base, 0.0)
+
+
 def steering_bias_from_scans(data: VictoriaPark, observations: Observations,
                              max_turn: float = 0.3) -> tuple[float, float]:
     """Steering bias [rad] that makes the dead-reckoned turns match the laser's (no GPS).
@@ -228,17 +253,61 @@ def steering_bias_from_scans(data: VictoriaPark, observations: Observations,
     b = sum g_t (d_t - D_t(0)) / sum g_t^2 over the scans with a turn estimate below
     ``max_turn``. Returns (bias, standard error), both in rad.
     """
-    turns = scan_rotations(observations)
-    base = _dead_reckoned_turns(data, 0.0)
-    slope = (_dead_reckoned_turns(data, 0.01) - base) / 0.01
-    use = np.isfinite(turns) & (np.abs(turns) < max_turn)
+    use, x, y = _turn_residuals(data, scan_rotations(observations), max_turn)
     if use.sum() < 10:
         raise ValueError(f"steering_bias_from_scans: only {int(use.sum())} scan pairs with a "
                          "turn estimate; expected at least 10 (too few trunks matched)")
-    x, y = slope[use], turns[use] - base[use]
+    x, y = x[use], y[use]
     bias = float(np.sum(x * y) / np.sum(x * x))
     error = float(np.std(y - bias * x) / np.sqrt(np.sum(x * x)))
     return bias, error
+
+
+# Scans in each window of ``steering_bias_profile`` (about 2 minutes, 300 m of driving).
+# Whole log, P=100, 16 runs (keys fold_in(key(0), r)), GPS RMSE median with the default
+# filter settings of that time (30 m matching range): constant 4.1 mrad 5.8 m; profile
+# with 600-scan windows 4.1 m, 1200-scan windows 4.8 m; 600-scan windows ending at each
+# scan (causal) 5.1 m.
+BIAS_WINDOW = 600
+
+
+def bias_profile_from_turns(data: VictoriaPark, turns: np.ndarray,
+                            window: int = BIAS_WINDOW, max_turn: float = 0.3,
+                            min_pairs: int = 20) -> np.ndarray:
+    """(D,) steering bias [rad] at each dead-reckoning time from laser turns (T - 1,).
+
+    The least-squares fit of ``steering_bias_from_scans`` over the scan pairs in
+    [c - window/2, c + window/2), for centres c every window/4 scans; windows with fewer
+    than ``min_pairs`` usable pairs (or no turning sensitivity) are skipped. The fits are
+    linearly interpolated over the dead-reckoning times (held constant beyond the first and
+    last centre). A calibration of the whole log from the laser alone (it looks up to
+    window/2 scans ahead, so it is an offline step, not an online filter).
+    """
+    if window < 4:
+        raise ValueError(f"window={window} scans is too short; expected at least 4")
+    use, x, y = _turn_residuals(data, np.asarray(turns, np.float64), max_turn)
+    centres, biases = [], []
+    for centre in range(0, turns.size, window // 4):
+        inside = slice(max(0, centre - window // 2), centre + window // 2)
+        xw, yw = x[inside], y[inside]
+        if use[inside].sum() >= min_pairs and np.sum(xw * xw) > 0.0:
+            centres.append(centre)
+            biases.append(np.sum(xw * yw) / np.sum(xw * xw))
+    if not centres:
+        raise ValueError(f"bias_profile_from_turns: no window of {window} scans has "
+                         f"{min_pairs} scan pairs with a turn estimate (of {turns.size + 1} "
+                         "scans); use a constant bias such as STEERING_BIAS")
+    return np.interp(data.dr_time, np.asarray(data.laser_time)[centres], biases)
+
+
+def steering_bias_profile(data: VictoriaPark, observations: Observations,
+                          window: int = BIAS_WINDOW, max_turn: float = 0.3) -> np.ndarray:
+    """(D,) time-varying steering bias [rad] from the scans alone (``scan_rotations`` of
+    ``observations``, then ``bias_profile_from_turns``). On the whole log it runs -0.3 to
+    6.6 mrad (10-90%: 2.2-5.8, median 4.2) around the constant 4.1; through the treeless
+    corner into the western leg (scans 4,650-5,300) it averages 2.2 mrad, so the constant
+    makes the dead reckoning turn too much there by about 2 mrad of steering."""
+    return bias_profile_from_turns(data, scan_rotations(observations), window, max_turn)
 
 
 def detector_settings(**overrides) -> dict:
@@ -417,15 +486,22 @@ def _run_inputs(data, config, params, observations, num_scans, dtype, steering_b
     if observations is None:
         observations = detect_scans(log.scan_ranges[:steps], log.scan_angles, config.max_obs,
                                     dtype)
+    observations = _slice_obs(observations, steps)
+    if isinstance(steering_bias, str):
+        if steering_bias != "laser":
+            raise ValueError(f"steering_bias={steering_bias!r}; expected 'laser' (the "
+                             "steering_bias_profile of these scans), a number [rad] or a "
+                             "(D,) array over the dead-reckoning samples")
+        steering_bias = steering_bias_profile(data, observations)
     controls = jnp.asarray(victoria_park_controls(data, steering_bias)[:steps], dtype)
-    return config, params, controls, _slice_obs(observations, steps), log, steps
+    return config, params, controls, observations, log, steps
 
 
 def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = None,
                       params: Params | None = None, observations: Observations | None = None,
                       num_scans: int | None = None, confirm_count: int = 3,
                       dtype=jnp.float32,
-                      steering_bias: float = STEERING_BIAS) -> VictoriaParkRun:
+                      steering_bias: float | np.ndarray | str = "laser") -> VictoriaParkRun:
     """FastSLAM over the first ``num_scans`` scans (None: all 7,230) and its GPS score.
 
     Args:
@@ -435,7 +511,9 @@ def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = Non
       observations: detections with (T_all, K) leaves (default ``detect_scans`` of the log
         with K = config.max_obs); pass them to reuse one detection across runs.
       confirm_count: updates a landmark needs to count in ``num_confirmed``.
-      steering_bias: added to the steering angle (``victoria_park_controls``).
+      steering_bias: added to the steering angle (``victoria_park_controls``): a number
+        [rad], a (D,) array over the dead-reckoning samples, or "laser" (default): the
+        ``steering_bias_profile`` of the first ``num_scans`` scans' detections.
     """
     config, params, controls, observations, log, steps = _run_inputs(
         data, config, params, observations, num_scans, dtype, steering_bias)
@@ -512,9 +590,10 @@ def run_victoria_park_batch(key, data: VictoriaPark, num_runs: int,
                             config: FilterConfig | None = None, params: Params | None = None,
                             observations: Observations | None = None,
                             num_scans: int | None = None, dtype=jnp.float32,
-                            steering_bias: float = STEERING_BIAS) -> BatchRuns:
+                            steering_bias: float | np.ndarray | str = "laser") -> BatchRuns:
     """``num_runs`` Monte Carlo runs (run r uses key ``fold_in(key, r)``) in one ``vmap`` call.
 
+    Arguments as ``run_victoria_park``.
     Memory grows as R * P * M; on this CPU pick P so R * P stays within a few thousand.
     """
     if not isinstance(num_runs, (int, np.integer)) or num_runs < 1:

@@ -3,6 +3,8 @@
 Tests that need the data skip when ``default_victoria_park_dir()`` is absent; the full run is
 ``@pytest.mark.slow``. Tolerances are stated at each assertion.
 """
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,6 +31,12 @@ def park(tmp_path_factory):
 @pytest.fixture(scope="module")
 def segment_log(park):
     return vpm.victoria_park_log(park)
+
+
+@pytest.fixture(scope="module")
+def log_detections(segment_log):
+    """``detect_scans`` of all 7,230 scans (about 10 s; shared by the calibration tests)."""
+    return vps.detect_scans(segment_log.scan_ranges, segment_log.scan_angles)
 
 
 # ------------------------------------------------------------------------------- no data needed
@@ -131,15 +139,14 @@ def test_detection_on_real_scans_respects_classic_limits(segment_log):
 
 
 @pytest.mark.skipif(not HAVE_DATA, reason=SKIP_REASON)
-def test_controls_and_steering_bias(park):
+def test_controls_and_steering_bias(park, log_detections):
     # Bias 0 reproduces the loader's dead reckoning exactly.
     np.testing.assert_allclose(vps.victoria_park_controls(park, 0.0),
                                vpm.dead_reckoning_controls(park), atol=1e-12)
     # The laser-only calibration gives the module constant (to 0.2 mrad), and the corrected
     # dead reckoning is at least 2x closer to GPS than the raw one (91.8 -> 37.8 m).
     log = vpm.victoria_park_log(park)
-    bias, _ = vps.steering_bias_from_scans(park, vps.detect_scans(log.scan_ranges,
-                                                                  log.scan_angles))
+    bias, _ = vps.steering_bias_from_scans(park, log_detections)
     assert abs(bias - vps.STEERING_BIAS) < 2e-4
     raw = vpm.gps_error(log.time, vpm.dead_reckoning_path(park)[:, :2], log.gps_time,
                         log.gps_xy)
@@ -258,12 +265,83 @@ def test_scan_rotations_recovers_known_turns():
 
 
 @pytest.mark.skipif(not HAVE_DATA, reason=SKIP_REASON)
-def test_steering_bias_from_scans_agrees_with_gps(park):
+def test_steering_bias_from_scans_agrees_with_gps(park, log_detections):
     """Laser-only calibration (no GPS): 4.1 +- 0.3 mrad measured; the GPS course fit gives 5.2.
     Both must agree within 2 mrad (the GPS course is noisy), and the laser estimate's standard
     error must be below 1 mrad."""
-    log = vpm.victoria_park_log(park)
-    obs = vps.detect_scans(log.scan_ranges, log.scan_angles)
-    bias, error = vps.steering_bias_from_scans(park, obs)
+    bias, error = vps.steering_bias_from_scans(park, log_detections)
     assert error < 1e-3
     assert abs(bias - vps.steering_bias_from_gps(park)) < 2e-3
+
+
+class _DeadReckoning(NamedTuple):
+    """The fields of ``VictoriaPark`` that the steering-bias tools read."""
+
+    dr_time: np.ndarray
+    dr_speed: np.ndarray
+    dr_steering: np.ndarray
+    laser_time: np.ndarray
+
+
+def _synthetic_drive(seconds=600.0):
+    """40 Hz dead reckoning at 3 m/s, steering swinging +-0.1 rad every 40 s; 5 Hz scans."""
+    dr_time = np.arange(0.0, seconds, 0.025)
+    steering = 0.1 * np.sin(2 * np.pi * dr_time / 40.0)
+    return _DeadReckoning(dr_time, np.full(dr_time.shape, 3.0), steering,
+                          np.arange(0.1, seconds - 0.1, 0.2))
+
+
+def test_bias_profile_recovers_a_bias_step():
+    """The vehicle's true steering bias steps from 3 to 6 mrad halfway; the laser sees each
+    scan-to-scan turn with 1 mrad noise and 30% of the pairs have no estimate. A 600-scan
+    window holds ~420 usable pairs of sensitivity g ~ 0.21, so a window fit has a standard
+    error of 1e-3 / sqrt(420 * 0.21^2) ~ 0.2 mrad: away from the step (more than half a
+    window) the profile must be within 1 mrad (5 standard errors) of the truth, where the
+    single constant fit is 1.5 mrad off on both sides."""
+    drive = _synthetic_drive()
+    true_bias = np.where(drive.dr_time < 300.0, 3e-3, 6e-3)
+    rng = np.random.default_rng(0)
+    turns = vps._dead_reckoned_turns(drive, true_bias) + rng.normal(0.0, 1e-3,
+                                                                   drive.laser_time.size - 1)
+    turns[rng.random(turns.size) < 0.3] = np.nan
+    profile = vps.bias_profile_from_turns(drive, turns, window=600)
+    assert profile.shape == drive.dr_time.shape
+    before, after = drive.dr_time < 300.0 - 70.0, drive.dr_time > 300.0 + 70.0
+    np.testing.assert_allclose(profile[before], 3e-3, atol=1e-3)
+    np.testing.assert_allclose(profile[after], 6e-3, atol=1e-3)
+    # The constant fit sits between the two levels.
+    use, x, y = vps._turn_residuals(drive, turns, 0.3)
+    constant = np.sum(x * y) / np.sum(x * x)
+    assert 4e-3 < constant < 5e-3
+
+
+def test_bias_profile_and_controls_name_bad_input():
+    drive = _synthetic_drive(60.0)
+    with pytest.raises(ValueError, match="no window"):
+        vps.bias_profile_from_turns(drive, np.full(drive.laser_time.size - 1, np.nan))
+    with pytest.raises(ValueError, match="too short"):
+        vps.bias_profile_from_turns(drive, np.zeros(drive.laser_time.size - 1), window=2)
+    with pytest.raises(ValueError, match="one value per dead-reckoning sample"):
+        vps.victoria_park_controls(drive, np.zeros(7))
+    # A constant and a constant array give the same moves.
+    np.testing.assert_array_equal(
+        vps.victoria_park_controls(drive, 0.004),
+        vps.victoria_park_controls(drive, np.full(drive.dr_time.shape, 0.004)))
+
+
+@pytest.mark.skipif(not HAVE_DATA, reason=SKIP_REASON)
+def test_steering_bias_profile_on_the_log(park, log_detections):
+    """Measured: the profile runs -0.3 to 6.6 mrad (10-90%: 2.2-5.8, median 4.17) around
+    the constant 4.12, and through the treeless corner into the western leg (scans
+    4,650-5,300) it averages 2.2 mrad.
+    Asserted with 0.5 mrad of slack: the median within 0.5 mrad of the constant fit, the
+    corner mean at least 1 mrad below it; and an unknown bias name is refused."""
+    log, obs = vpm.victoria_park_log(park), log_detections
+    profile = vps.steering_bias_profile(park, obs)
+    constant, _ = vps.steering_bias_from_scans(park, obs)
+    assert abs(np.median(profile) - constant) < 5e-4
+    corner = ((park.dr_time >= log.time[4650]) & (park.dr_time <= log.time[5300]))
+    assert profile[corner].mean() < constant - 1e-3, profile[corner].mean()
+    with pytest.raises(ValueError, match="expected 'laser'"):
+        vps.run_victoria_park(jax.random.key(0), park, num_scans=10, observations=obs,
+                              steering_bias="gps")
