@@ -100,7 +100,10 @@ def settings_line() -> str:
             f"{config.boundary} boundary, M = {config.max_landmarks}, K = {config.max_obs}; "
             f"motion noise rot {noise['rot1_noise']}, trans {noise['trans_noise']} "
             f"(seed 000 Eq. 1); observation noise range "
-            f"{vps.PARAM_DEFAULTS['range_noise']}, bearing {vps.PARAM_DEFAULTS['bearing_noise']}")
+            f"{vps.PARAM_DEFAULTS['range_noise']}, bearing {vps.PARAM_DEFAULTS['bearing_noise']}; "
+            f"matching out to {vps.PARAM_DEFAULTS['max_range']:.0f} m, misses counted within "
+            f"{vps.PARAM_DEFAULTS['miss_range']:.0f} m; steering bias: the laser-only profile "
+            f"(steering_bias_profile, {vps.BIAS_WINDOW}-scan windows)")
 
 
 def markdown(numbers) -> str:
@@ -131,11 +134,14 @@ def markdown(numbers) -> str:
         "(EKF-SLAM 1.4-1.8) |",
         f"| mean / median / max error [m] | {run['mean']:.2f} / {run['median']:.2f} / "
         f"{run['max']:.2f} | |",
-        f"| steering bias [rad]: used / laser-only fit / GPS course fit | "
-        f"{run['steering_bias']} / {run['laser_bias']:.4f} +- {run['laser_bias_se']:.4f} / "
-        f"{run['gps_bias']:.4f} | |",
-        f"| dead-reckoning RMSE [m], raw / steering + {run['steering_bias']} rad | "
-        f"{run['dead_reckoning_rmse']:.1f} / {run['corrected_dead_reckoning_rmse']:.1f} | |",
+        f"| steering bias [mrad]: used, laser-only profile median (10-90%) / constant "
+        f"laser-only fit / GPS course fit | {1e3 * run['profile_median']:.2f} "
+        f"({1e3 * run['profile_p10']:.2f}-{1e3 * run['profile_p90']:.2f}) / "
+        f"{1e3 * run['laser_bias']:.2f} +- {1e3 * run['laser_bias_se']:.2f} / "
+        f"{1e3 * run['gps_bias']:.2f} | |",
+        f"| dead-reckoning RMSE [m], raw / constant laser bias / laser bias profile | "
+        f"{run['dead_reckoning_rmse']:.1f} / {run['corrected_dead_reckoning_rmse']:.1f} / "
+        f"{run['profile_dead_reckoning_rmse']:.1f} | |",
         f"| final tree count (best particle) | {run['num_trees']} | 130-200 (~150 known) |",
         f"| trees updated >= 3 times | {run['num_confirmed']} | |",
         f"| compile [s] | {run['compile_s']:.1f} | |",
@@ -172,15 +178,20 @@ def main():
                              "first_s": first_s, "run_s": detect_s}}
     print("detection:", numbers["detection"], flush=True)
 
+    steps = log.num_steps if args.scans is None else args.scans
+    # The bias profile of the scans this run sees (what the runs' default "laser" computes).
+    profile = vps.steering_bias_profile(data, jax.tree.map(lambda leaf: leaf[:steps], obs))
     config = vps.victoria_park_config(num_particles=args.particles)
     run = vps.run_victoria_park(jax.random.key(args.seed), data, config, observations=obs,
-                                num_scans=args.scans)
-    steps = run.path.shape[0]
-    dead_reckoning = vpm.gps_error(log.time[:steps], vpm.dead_reckoning_path(data)[:steps, :2],
-                                   log.gps_time, log.gps_xy)
-    corrected = vpm.gps_error(log.time[:steps],
-                              vpm.odometry_path(vps.victoria_park_controls(data))[:steps, :2],
-                              log.gps_time, log.gps_xy)
+                                num_scans=args.scans, steering_bias=profile)
+
+    def dead_reckoning_error(path):
+        return vpm.gps_error(log.time[:steps], path[:steps, :2], log.gps_time, log.gps_xy)
+
+    dead_reckoning = dead_reckoning_error(vpm.dead_reckoning_path(data))
+    corrected = dead_reckoning_error(vpm.odometry_path(vps.victoria_park_controls(data)))
+    profiled = dead_reckoning_error(vpm.odometry_path(vps.victoria_park_controls(data,
+                                                                                 profile)))
     laser_bias, laser_bias_se = vps.steering_bias_from_scans(data, obs)
     numbers["run"] = dict(particles=args.particles, scans=steps, rmse=run.gps.rmse,
                           laser_bias=laser_bias, laser_bias_se=laser_bias_se,
@@ -188,7 +199,11 @@ def main():
                           mean=run.gps.mean, median=run.gps.median, max=run.gps.max,
                           dead_reckoning_rmse=dead_reckoning.rmse,
                           corrected_dead_reckoning_rmse=corrected.rmse,
-                          steering_bias=vps.STEERING_BIAS, num_trees=run.num_trees,
+                          profile_dead_reckoning_rmse=profiled.rmse,
+                          profile_median=float(np.median(profile)),
+                          profile_p10=float(np.percentile(profile, 10)),
+                          profile_p90=float(np.percentile(profile, 90)),
+                          num_trees=run.num_trees,
                           num_confirmed=run.num_confirmed, compile_s=run.compile_s,
                           run_s=run.run_s, mean_ess=float(run.ess.mean()))
     print("run:", numbers["run"], flush=True)
@@ -201,7 +216,8 @@ def main():
               f"about {args.mc_runs * run.run_s * args.mc_particles / args.particles / 60:.0f} "
               "min at the single run's speed", flush=True)
         batch = vps.run_victoria_park_batch(jax.random.key(args.seed + 1), data, args.mc_runs,
-                                            mc_config, observations=obs, num_scans=args.scans)
+                                            mc_config, observations=obs, num_scans=args.scans,
+                                            steering_bias=profile)
         numbers["monte_carlo"] = dict(
             runs=args.mc_runs, particles=args.mc_particles,
             rmse_median=float(np.median(batch.rmse)), rmse_mean=float(batch.rmse.mean()),
