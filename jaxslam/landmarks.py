@@ -65,7 +65,7 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
     in_min_range = predicted.range >= params.min_range
     saturated = jnp.all(obs_valid)
     horizon = jnp.where(saturated, jnp.max(jnp.where(obs_valid, z[:, 0], 0.0)), jnp.inf)
-    within_horizon = (predicted.range <= horizon) & (predicted.range <= params.miss_range)
+    may_be_missed = (predicted.range <= horizon) & (predicted.range <= params.miss_range)
     # Observations nearer than min_range could never match (no landmark there is matchable)
     # and would create a twin every step.
     obs_valid = obs_valid & (z[:, 0] >= params.min_range)
@@ -74,7 +74,7 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
         matchable = active & in_min_range & (predicted.range <= params.max_range)
         no_obs = jnp.zeros_like(usable)
         return Visibility(usable, no_obs, matchable, jnp.zeros_like(matchable),
-                          matchable & within_horizon)
+                          matchable & may_be_missed)
     if boundary != "loose":
         raise ValueError(f"boundary={boundary!r}; expected 'hard' or 'loose'")
     obs_width = params.airlock_sigmas * measurement_std(z[:, 0], params)[0]
@@ -88,7 +88,7 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
     matchable = active & in_min_range & (predicted.range <= params.max_range - landmark_width)
     explained = jnp.any(gated & set_aside[:, None], axis=0)
     return Visibility(obs_valid & ~set_aside, set_aside, matchable, explained,
-                      matchable & within_horizon)
+                      matchable & may_be_missed)
 
 
 def update_existence(existence, matched, missed, params: Params):
