@@ -139,7 +139,8 @@ def test_visibility_loose_inside_is_normal():
 
 @pytest.mark.parametrize("boundary", ["hard", "loose"])
 def test_miss_range_spares_far_landmarks_from_misses_only(boundary):
-    """A landmark beyond ``miss_range`` still matches and updates; it is just not expected."""
+    """A landmark beyond ``miss_range`` stays matchable but is not expected (its misses do not
+    count); ``test_miss_range_through_step`` checks the match, the hit and the kept evidence."""
     params = default_params(dtype=jnp.float64, max_range=45.0)
     pose = jnp.zeros(3)
     mean = jnp.asarray([[10.0, 0.0], [38.0, 5.0]])  # ranges 10 m and 38.3 m
@@ -253,6 +254,30 @@ def test_tree_inside_landmark_beyond_range(steps, boundary):
         assert int(info.num_set_aside[0]) == 1
         np.testing.assert_allclose(float(new_state.particles.existence[0, 1]), 1.0)
     assert int(info.num_landmarks[0]) == active.sum()
+
+
+@pytest.mark.parametrize("boundary", ["hard", "loose"])
+def test_miss_range_through_step(steps, boundary):
+    """Landmarks at 10 m (seen) and 15 m, inside R_max = 20 m. Unseen, the 15 m one takes a
+    miss and is deleted (0.5 - 2.25 < -1.5) by default, but keeps its evidence with
+    miss_range = 12 m; seen, it still matches and gains a hit with miss_range = 12 m."""
+    filt, step = steps[boundary]
+    state = crafted_state(filt, [[10.0, 0.0], [15.0, 0.0]], [0.5, 0.5])
+
+    def run(miss_range, z, valid):
+        obs = make_observations(jnp.asarray(z, jnp.float32), valid=jnp.asarray(valid))
+        params = default_params(**QUIET)._replace(miss_range=jnp.float32(miss_range))
+        return step(jax.random.key(0), state, params, jnp.zeros(3, jnp.float32), obs)
+
+    unseen = ([[10.0, 0.0], [0.0, 0.0]], [True, False])
+    new_state, _ = run(np.inf, *unseen)
+    np.testing.assert_array_equal(np.asarray(new_state.particles.active[0, :2]), [True, False])
+    new_state, _ = run(12.0, *unseen)
+    np.testing.assert_array_equal(np.asarray(new_state.particles.active[0, :2]), [True, True])
+    np.testing.assert_allclose(float(new_state.particles.existence[0, 1]), 0.5)
+    new_state, info = run(12.0, [[10.0, 0.0], [15.0, 0.0]], [True, True])
+    np.testing.assert_array_equal(np.asarray(info.match[0]), [0, 1])
+    assert float(new_state.particles.existence[0, 1]) > 0.5
 
 
 def test_birth_goes_to_first_free_slot_through_step(steps):
