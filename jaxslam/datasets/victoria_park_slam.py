@@ -482,6 +482,10 @@ def _run_one(config, key, params, controls, observations):
 def _run_inputs(data, config, params, observations, num_scans, dtype, steering_bias):
     """Defaults filled in and everything cut to the first T = ``num_scans`` scans:
     (config, params, controls (T, 3), observations with (T, K) leaves, the log, T)."""
+    if isinstance(steering_bias, str) and steering_bias != "laser":
+        raise ValueError(f"steering_bias={steering_bias!r}; expected 'laser' (the "
+                         "steering_bias_profile of these scans), a number [rad] or a (D,) "
+                         "array over the dead-reckoning samples")
     config = victoria_park_config() if config is None else config
     params = victoria_park_params(config, dtype) if params is None else params
     log = victoria_park_log(data)
@@ -491,10 +495,6 @@ def _run_inputs(data, config, params, observations, num_scans, dtype, steering_b
                                     dtype)
     observations = _slice_obs(observations, steps)
     if isinstance(steering_bias, str):
-        if steering_bias != "laser":
-            raise ValueError(f"steering_bias={steering_bias!r}; expected 'laser' (the "
-                             "steering_bias_profile of these scans), a number [rad] or a "
-                             "(D,) array over the dead-reckoning samples")
         steering_bias = steering_bias_profile(data, observations)
     controls = jnp.asarray(victoria_park_controls(data, steering_bias)[:steps], dtype)
     return config, params, controls, observations, log, steps
