@@ -161,8 +161,6 @@ def markdown(numbers) -> str:
         ]
     lines += ["Command: `.venv/bin/python experiments/victoria_park.py` "
               f"{numbers['argv']}", ""]
-    if "run_timing_note" in numbers:
-        lines += [f"Note: {numbers['run_timing_note']}.", ""]
     return "\n".join(lines)
 
 

@@ -60,9 +60,14 @@ def test_filter_unpacks_as_init_step():
     del step
 
 
-def test_association_window_matches_full_association_when_it_covers_the_map():
+@pytest.mark.parametrize("proposal,pose_uncertainty", [("motion", False),
+                                                      ("observation", True)])
+def test_association_window_matches_full_association_when_it_covers_the_map(
+        proposal, pose_uncertainty):
     """With more window places than active landmarks, windowed association is exact: the
-    same keys give the same particles, weights and maps as matching against every slot."""
+    same keys give the same particles, weights and maps as matching against every slot.
+    The window's rows are in distance order, not slot order, so the observation proposal
+    (which indexes the window by ``local_match``) is checked too."""
     rng = np.random.default_rng(0)
     trees = rng.uniform(-8.0, 8.0, (6, 2))
     steps = 6
@@ -78,7 +83,8 @@ def test_association_window_matches_full_association_when_it_covers_the_map():
     outs = []
     for window in (0, 10):
         config = jaxslam.FilterConfig(num_particles=4, max_landmarks=16, max_obs=8,
-                                      association_window=window)
+                                      association_window=window, proposal=proposal,
+                                      match_pose_uncertainty=pose_uncertainty)
         params = jaxslam.default_params(config, max_range=15.0)
         outs.append(jaxslam.run_filter(config, jax.random.PRNGKey(3), params, controls, obs))
     (full, _), (windowed, _) = outs

@@ -596,7 +596,8 @@ def run_victoria_park_batch(key, data: VictoriaPark, num_runs: int,
                             steering_bias: float | np.ndarray | str = "laser") -> BatchRuns:
     """``num_runs`` Monte Carlo runs (run r uses key ``fold_in(key, r)``) in one ``vmap`` call.
 
-    Arguments as ``run_victoria_park``. Memory grows as R * P * M; on this CPU pick P so R * P stays within a few thousand.
+    Arguments as ``run_victoria_park``. Memory grows as R * P * M; on this CPU pick P so
+    R * P stays within a few thousand.
     """
     if not isinstance(num_runs, (int, np.integer)) or num_runs < 1:
         raise ValueError(f"num_runs={num_runs!r} is invalid; expected a positive integer")
