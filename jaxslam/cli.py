@@ -208,17 +208,34 @@ def _filter_log(args, log):
                                         motion_model=log.motion_model)
     params = default_params(filter_config, **dict(study.params))
     initial = np.zeros(3) if log.initial_pose is None else log.initial_pose
+    smooth = bool(getattr(args, "smooth", False))
     final, trace = run_filter(filter_config, jax.random.PRNGKey(args.seed), params,
                               np.asarray(log.controls, np.float32), obs,
-                              np.asarray(initial, np.float32))
+                              np.asarray(initial, np.float32), record_lineage=smooth)
     est = estimate(final)
     mean_pose = np.asarray(trace.mean_pose, np.float64)
     values = {"steps": log.num_steps, "num_landmarks": int(np.sum(np.asarray(est.active)))}
     truth = np.zeros((0, 3)) if log.truth_pose is None else np.asarray(log.truth_pose)
+    smoothed = None
+    if smooth:
+        from jaxslam import smoothing
+        from jaxslam.motion import control_to_odometry
+
+        history = smoothing.trace_lineage(trace.lineage, est.best_particle)
+        odometry = control_to_odometry(jax.numpy.asarray(log.controls, np.float32), params,
+                                       log.motion_model)
+        smoothed = smoothing.smooth_lineage(np.asarray(initial, np.float64),
+                                            jax.tree.map(np.asarray, history),
+                                            np.asarray(odometry), np.asarray(obs.z),
+                                            params).path
     if log.truth_pose is not None:
         values["final_pose_error"] = float(np.hypot(*(mean_pose[-1, :2] - truth[-1, :2])))
         values["ate_rmse"] = float(metrics.ate_rmse(mean_pose, truth))
         values["ate_rmse_aligned"] = float(metrics.ate_rmse(mean_pose, truth, align=True))
+        if smoothed is not None:
+            values["smoothed_ate_rmse"] = float(metrics.ate_rmse(smoothed, truth))
+            values["smoothed_ate_rmse_aligned"] = float(metrics.ate_rmse(smoothed, truth,
+                                                                         align=True))
     trees = np.zeros((0, 2)) if log.truth_landmarks is None else np.asarray(log.truth_landmarks)
     if log.truth_landmarks is not None and len(trees):
         scores = metrics.map_metrics(est.landmark_mean, est.active, trees,
@@ -230,6 +247,8 @@ def _filter_log(args, log):
                    landmark_mean=np.asarray(est.landmark_mean),
                    landmark_cov=np.asarray(est.landmark_cov), active=np.asarray(est.active),
                    tree_centres=trees, tree_radii=np.zeros(len(trees)))  # radii unknown: markers only
+    if smoothed is not None:
+        example["smoothed_pose"] = smoothed
     return example, values
 
 
@@ -337,6 +356,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--data", help="a robot log in the jaxslam .npz format")
     run.add_argument("--config", help="study TOML whose filter/params/scenario to use")
     run.add_argument("--seed", type=int, default=0, help="PRNG seed for --data (default 0)")
+    run.add_argument("--smooth", action="store_true",
+                     help="with --data: also smooth the best particle's history (its "
+                          "associations fixed; jaxslam.smoothing) and report its errors")
     _add_common(run, config_required=False)
     run.set_defaults(func=cmd_run)
 
