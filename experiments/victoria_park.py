@@ -27,7 +27,7 @@ def parse_args():
     parser.add_argument("--mc-runs", type=int, default=100)
     parser.add_argument("--mc-particles", type=int, default=100)
     parser.add_argument("--mc-chunk", type=int, default=20,
-                        help="runs vmapped at a time (each records a 61 MB lineage)")
+                        help="runs vmapped at a time (each records a 64 MB lineage)")
     parser.add_argument("--scans", type=int, default=None, help="prefix length (default all)")
     parser.add_argument("--out", default="results/victoria_park")
     return parser.parse_args()
@@ -83,7 +83,9 @@ def plot_mc(batch, particles, out_png):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-    bins = np.linspace(0.0, float(np.max(batch.rmse)) + 0.5, 40)
+    largest = max(np.max(batch.rmse), np.max(batch.smoothed_rmse)
+                  if batch.smoothed_rmse is not None else 0.0)
+    bins = np.linspace(0.0, float(largest) + 0.5, 40)
     ax[0].hist(batch.rmse, bins=bins, alpha=0.6, label="online (weighted mean)")
     if batch.smoothed_rmse is not None:
         ax[0].hist(batch.smoothed_rmse, bins=bins, alpha=0.6, label="smoothed history")

@@ -25,6 +25,10 @@ _PUBLIC = {
     "Filter": "jaxslam.filter",
     "StepInfo": "jaxslam.filter",
     "stable_match": "jaxslam.association",
+    "Lineage": "jaxslam.filter",
+    "trace_lineage": "jaxslam.lineage",
+    "smooth_lineage": "jaxslam.smoothing",
+    "smooth_path": "jaxslam.smoothing",
 }
 
 __all__ = sorted(_PUBLIC) + ["__version__"]

@@ -148,6 +148,8 @@ def cmd_run(args) -> int:
     """One run: of the default scenario (a one-run study), or of a robot log (--data)."""
     if args.data:
         return _run_log(args)
+    if args.smooth:
+        raise UsageError("--smooth applies to a robot log: pass --data FILE.npz too")
     config = _load_config(args.config, list(args.set or ())
                           + ["name=\"run\"", "num_runs=1", "chunk_size=1"])
     from jaxslam import plots, studies
@@ -218,10 +220,10 @@ def _filter_log(args, log):
     truth = np.zeros((0, 3)) if log.truth_pose is None else np.asarray(log.truth_pose)
     smoothed = None
     if smooth:
-        from jaxslam import smoothing
+        from jaxslam import lineage, smoothing
         from jaxslam.motion import control_to_odometry
 
-        history = smoothing.trace_lineage(trace.lineage, est.best_particle)
+        history = lineage.trace_lineage(trace.lineage, est.best_particle)
         odometry = control_to_odometry(jax.numpy.asarray(log.controls, np.float32), params,
                                        log.motion_model)
         smoothed = smoothing.smooth_lineage(np.asarray(initial, np.float64),

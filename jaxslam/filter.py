@@ -50,8 +50,8 @@ class StepInfo(NamedTuple):
       resampling (arange(P) when the step did not resample); ``match`` and ``birth_slot``
       are indexed before resampling.
     birth_slot: (P, K) int32 slot of the landmark each observation created, -1 when it
-      created none. With ``match`` and ``ancestor`` it lets ``smoothing.lineage_landmarks``
-      follow one particle's data association back through time.
+      created none. With ``match`` and ``ancestor`` it lets ``lineage.trace_lineage`` and
+      ``lineage.landmark_identities`` follow one particle's data association back in time.
     """
 
     ess: jnp.ndarray
@@ -109,7 +109,7 @@ class Lineage(NamedTuple):
     ancestor: (T, P) int32, ``StepInfo.ancestor``; match / birth_slot: (T, P, K) int16,
     ``StepInfo.match`` / ``StepInfo.birth_slot`` (-1: none), indexed before resampling;
     pose: (T, P, 3) every particle's pose after the step (after resampling). Memory is
-    4 T P K + 12 T P bytes (61 MB for Victoria Park's T = 7230, P = 100, K = 18).
+    4 T P K + 16 T P bytes (64 MB for Victoria Park's T = 7230, P = 100, K = 18).
     ``smoothing.trace_lineage`` extracts one particle's history from it.
     """
 
@@ -545,7 +545,7 @@ def scan_filter(config: FilterConfig, key, state: FilterState, params: Params, c
 
     Step t uses key ``fold_in(key, t)``. Returns (final state, ``Trace``); with
     ``record_lineage`` the trace carries every particle's ancestry and association
-    (``Lineage``, for ``smoothing.smooth_run``).
+    (``Lineage``, for ``smoothing.smooth_lineage``).
     """
     step = make_filter(config).step
     if record_lineage:
@@ -579,7 +579,7 @@ def run_filter(config: FilterConfig | Filter, key, params: Params, controls,
       observations: ``Observations`` with leaves (T, K, ...).
       initial_pose: (3,) start pose of every particle (default origin).
       record_lineage: also record every particle's ancestry and association in
-        ``trace.lineage`` (4 T P K bytes), for ``smoothing.smooth_run``.
+        ``trace.lineage`` (4 T P K + 16 T P bytes), for ``smoothing.smooth_lineage``.
     Returns:
       (final ``FilterState``, ``Trace`` with leading axis T).
     """

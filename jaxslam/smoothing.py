@@ -24,7 +24,7 @@ This undoes what a particle filter cannot: a heading error made where no landmar
 spread back over that stretch when the loop closes, as EKF-SLAM's correlations do. The
 associations are the filter's and are not revised.
 
-The lineage extraction (``trace_lineage``) is JAX (jit/vmap over runs). The least squares is
+The history comes from ``lineage.trace_lineage`` (JAX, jit/vmap over runs). The least squares is
 solved on the host in float64 with Levenberg-Marquardt steps on the sparse normal equations
 (``scipy.sparse``, a minimum-degree LU); its Jacobian is block sparse (3x3 move blocks on a
 band, 2x3 and 2x2 observation blocks), so one step on the 7,230-scan Victoria Park log (24k
@@ -34,28 +34,14 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
-from jaxslam.filter import Lineage
+from jaxslam.lineage import LineagePath, landmark_identities
 from jaxslam.types import Params
 
 MOVE_STD_FLOOR = 1e-3  # [m] added in x and y to every move covariance (a pure turn is singular)
-
-
-class LineagePath(NamedTuple):
-    """One particle's history, step by step.
-
-    pose: (T, 3) its pose after each step; match: (T, K) slot each observation was matched to
-    (-1: none); birth_slot: (T, K) slot each observation created (-1: none).
-    """
-
-    pose: jnp.ndarray
-    match: jnp.ndarray
-    birth_slot: jnp.ndarray
 
 
 class NoiseScales(NamedTuple):
@@ -88,58 +74,6 @@ class Smoothed(NamedTuple):
     iterations: int
     converged: bool
     noise_scales: NoiseScales = NoiseScales()
-
-
-def trace_lineage(lineage: Lineage, final_particle) -> LineagePath:
-    """The history of particle ``final_particle`` (index after the last step's resampling).
-
-    With i_{T-1} = final_particle and i_{t-1} = ancestor[t, i_t], the particle at step t is
-    i_t after resampling and ancestor[t, i_t] before it (where match and birth_slot live).
-
-    Args:
-      lineage: ``Lineage`` with leaves (T, P, ...). final_particle: () int.
-    Returns:
-      ``LineagePath`` with leaves (T, ...). Jit- and vmap-safe.
-    """
-    def back(index, ancestor_t):
-        before = ancestor_t[index]
-        return before, (index, before)
-
-    _, (after, before) = jax.lax.scan(back, jnp.asarray(final_particle, jnp.int32),
-                                      lineage.ancestor, reverse=True)
-    steps = jnp.arange(lineage.ancestor.shape[0])
-    return LineagePath(pose=lineage.pose[steps, after], match=lineage.match[steps, before],
-                       birth_slot=lineage.birth_slot[steps, before])
-
-
-def landmark_identities(match, birth_slot):
-    """Landmark identity of every observation along one particle's history.
-
-    A slot holds a new landmark each time an observation is born into it, so identity is
-    (slot, birth count): matches read the slot's current landmark, births (after the step's
-    matches) start a new one.
-
-    Args:
-      match, birth_slot: (T, K) int from ``trace_lineage`` (-1: none).
-    Returns:
-      (ids (T, K) int64 in [0, L) or -1, L).
-    """
-    match, birth_slot = np.asarray(match), np.asarray(birth_slot)
-    if match.shape != birth_slot.shape or match.ndim != 2:
-        raise ValueError(f"match and birth_slot must both be (T, K); got {match.shape} and "
-                         f"{birth_slot.shape}")
-    num_slots = int(max(match.max(initial=-1), birth_slot.max(initial=-1))) + 1
-    current = np.full(num_slots + 1, -1, np.int64)  # last entry: the -1 sink
-    ids = np.full(match.shape, -1, np.int64)
-    count = 0
-    for t in range(match.shape[0]):
-        ids[t] = current[match[t]]  # match == -1 reads the sink (-1)
-        born = birth_slot[t] >= 0
-        new = np.arange(count, count + born.sum())
-        current[birth_slot[t][born]] = new
-        ids[t][born] = new
-        count += int(born.sum())
-    return ids, count
 
 
 # --------------------------------------------------------------------------------------------
@@ -218,6 +152,9 @@ def move_whitening(odometry, params: Params, std_floor: float = MOVE_STD_FLOOR):
     cov = np.einsum("nij,nj,nkj->nik", jac, std**2, jac)
     cov[:, 0, 0] += std_floor**2
     cov[:, 1, 1] += std_floor**2
+    if np.any(cov[:, 2, 2] <= 0.0):
+        raise ValueError(f"move {int(np.argmax(cov[:, 2, 2] <= 0.0))} has zero heading noise: "
+                         "give rot1_noise or rot2_noise a positive constant term (c1 / c3)")
     order = np.array([2, 0, 1])  # (theta, x, y)
     white_ordered = np.linalg.inv(np.linalg.cholesky(cov[:, order][:, :, order]))
     return delta, white_ordered[:, :, np.argsort(order)]
@@ -388,7 +325,7 @@ def _levenberg_marquardt(problem: _Problem, path, landmark, iterations: int, tol
             if new_cost < cost or lam > 1e8:
                 break
             lam *= 10.0
-        if new_cost >= cost:
+        if not new_cost < cost:  # also a NaN cost: never take that step
             converged = True  # no damping lowers the cost: a minimum to working precision
             break
         path, landmark = new_path, new_landmark
@@ -414,8 +351,10 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
         (``landmark_identities``), -1 for observations to leave out (invalid, unassociated).
       params: ``Params`` (the motion and measurement noise).
       iterations: most LM steps; huber: Huber threshold on the whitened residual norm;
-      tol: stop when a step lowers the cost by less than this fraction; damping: initial
-        lambda relative to the mean diagonal of J^T J.
+      tol: stop when a step lowers the cost by less than this fraction; damping: the first
+        lambda is damping * mean(diag(J^T J)) and each step solves
+        (J^T J + lambda diag(J^T J)) dx = -J^T e; lambda / 10 after a step that lowers the
+        cost, x 10 (retry) after one that does not.
       noise_scales: ``NoiseScales`` multiplying the four groups' stds (default all 1).
       calibrate_rounds: after solving, re-estimate the scales from the residuals
         (``_variance_factors``: each group's chi-square over its redundancy) and solve
@@ -427,11 +366,20 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
     path = np.asarray(path, np.float64)
     odometry = np.asarray(odometry, np.float64)
     z = np.asarray(z, np.float64)
+    start_pose = np.asarray(start_pose, np.float64)
     landmark_of_obs = np.asarray(landmark_of_obs)
-    steps = path.shape[0]
-    if path.shape != (steps, 3) or odometry.shape != (steps, 3):
-        raise ValueError(f"path and odometry must both be (T, 3); got {path.shape} and "
-                         f"{odometry.shape}")
+    steps = path.shape[0] if path.ndim else 0
+    if steps < 1 or path.shape != (steps, 3) or odometry.shape != (steps, 3):
+        raise ValueError(f"path and odometry must both be (T, 3) with T >= 1; got {path.shape} "
+                         f"and {odometry.shape}")
+    if start_pose.shape != (3,) or not np.all(np.isfinite(start_pose)):
+        raise ValueError(f"start_pose must be a finite (3,) pose; got {start_pose}")
+    if not np.all(np.isfinite(odometry)):
+        raise ValueError(f"odometry has {np.sum(~np.isfinite(odometry))} NaN/inf entries "
+                         f"(first at step {np.argwhere(~np.isfinite(odometry))[0, 0]})")
+    if iterations < 1 or calibrate_rounds < 0 or not huber > 0:
+        raise ValueError(f"need iterations >= 1, calibrate_rounds >= 0 and huber > 0; got "
+                         f"{iterations}, {calibrate_rounds}, {huber}")
     if z.shape[:1] != (steps,) or z.shape[2:] != (2,) or landmark_of_obs.shape != z.shape[:2]:
         raise ValueError(f"z must be (T, K, 2) and landmark_of_obs (T, K) with T = {steps}; "
                          f"got {z.shape} and {landmark_of_obs.shape}")
@@ -445,7 +393,7 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
     delta, move_white = move_whitening(odometry, params)
     obs_t, obs_k = np.nonzero(used)
     obs_std = _observation_std(z[obs_t, obs_k, 0], params)
-    base = _Problem(np.asarray(start_pose, np.float64), delta, move_white, obs_t,
+    base = _Problem(start_pose, delta, move_white, obs_t,
                     landmark_of_obs[obs_t, obs_k], z[obs_t, obs_k], obs_std, float(huber))
     problem = _rescaled(base, move_white, obs_std, scales)
     landmark = initial_landmarks(path, z, landmark_of_obs, num_landmarks)
@@ -464,6 +412,10 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
 def smooth_lineage(start_pose, lineage_path: LineagePath, odometry, z, params: Params,
                    **options) -> Smoothed:
     """``smooth_path`` of one particle's history (``trace_lineage``), its associations fixed.
+
+    The callers in this package trace ``estimate(final_state).best_particle``: the highest
+    final weight, or after a resampling last step (equal weights) the first survivor, a draw
+    from the posterior over histories.
 
     Args:
       start_pose: (3,) the filter's initial pose. lineage_path: ``LineagePath`` (T leading).

@@ -246,6 +246,8 @@ def test_run_on_a_log_with_smoothing(tmp_path, monkeypatch, capsys):
     assert float(values["smoothed_ate_rmse"]) < 0.2
     saved = np.load(tmp_path / "out" / "example_run.npz")
     assert saved["smoothed_pose"].shape == saved["mean_pose"].shape
+    assert cli.main(["run", "--smooth"]) == 2
+    assert "--data" in capsys.readouterr().err
 
 
 def test_run_on_a_bad_log(tmp_path, capsys):

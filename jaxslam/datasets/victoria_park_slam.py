@@ -47,7 +47,7 @@ from jaxslam.datasets.victoria_park import (
     rigid_transform_2d,
     victoria_park_log,
 )
-from jaxslam import smoothing
+from jaxslam import lineage, smoothing
 from jaxslam.detect import detect_trunks
 from jaxslam.filter import estimate, run_filter
 from jaxslam.types import FilterConfig, Observations, Params, default_params
@@ -484,7 +484,7 @@ def _run_one(config, key, params, controls, observations, smooth=False):
     state, trace = run_filter(config, key, params, controls, observations,
                               record_lineage=smooth)
     best = estimate(state)
-    history = (smoothing.trace_lineage(trace.lineage, best.best_particle) if smooth
+    history = (lineage.trace_lineage(trace.lineage, best.best_particle) if smooth
                else None)
     return (trace.mean_pose, trace.ess, trace.num_landmarks, best.landmark_mean, best.active,
             state.particles.observation_count[best.best_particle], history)
@@ -500,7 +500,7 @@ def _run_one(config, key, params, controls, observations, smooth=False):
 SMOOTH_CALIBRATE_ROUNDS = 1
 
 
-def _smooth(params, controls, observations, history: smoothing.LineagePath):
+def _smooth(params, controls, observations, history: lineage.LineagePath):
     """``smoothing.smooth_lineage`` of one run from the origin (VP controls are odometry)."""
     return smoothing.smooth_lineage(np.zeros(3), jax.tree.map(np.asarray, history),
                                     np.asarray(controls), np.asarray(observations.z), params,
@@ -547,7 +547,7 @@ def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = Non
         [rad], a (D,) array over the dead-reckoning samples, or "laser" (default): the
         ``steering_bias_profile`` of the first ``num_scans`` scans' detections.
       smooth: also re-solve the best particle's history (``smoothing``; the filter then
-        records every particle's lineage, 61 MB for the whole log at P=100, K=18).
+        records every particle's lineage, 64 MB for the whole log at P=100, K=18).
     """
     config, params, controls, observations, log, steps = _run_inputs(
         data, config, params, observations, num_scans, dtype, steering_bias)
@@ -630,7 +630,7 @@ class BatchRuns(NamedTuple):
 @functools.partial(jax.jit, static_argnums=(0, 5))
 def _run_batch(config, keys, params, controls, observations, chunk=0):
     """All runs vmapped (``chunk`` = 0), or with lineage recording and ``chunk`` runs
-    vmapped at a time (``lax.map``): the lineage is 4 T P K + 12 T P bytes a run."""
+    vmapped at a time (``lax.map``): the lineage is 4 T P K + 16 T P bytes a run."""
     smooth = chunk > 0
 
     def one(key):
@@ -654,7 +654,7 @@ def run_victoria_park_batch(key, data: VictoriaPark, num_runs: int,
 
     Arguments as ``run_victoria_park``. Memory grows as R * P * M; on this CPU pick P so
     R * P stays within a few thousand. With ``smooth`` the filter records every particle's
-    lineage, so runs go ``chunk`` at a time through the compiled call (61 MB a run for the
+    lineage, so runs go ``chunk`` at a time through the compiled call (64 MB a run for the
     whole log at P=100), and each run's best history is then smoothed on the host (a tqdm
     bar when ``progress``; ~6 s a run for the whole log on this CPU).
     """
