@@ -204,20 +204,25 @@ def _straight_log(steps=15, num_obs=6):
                     obs_valid=z[:, :num_obs, 0] < 8.0, truth_pose=truth, truth_landmarks=trees)
 
 
-def test_run_on_a_log(tmp_path, monkeypatch, capsys):
+def _run_on_straight_log(tmp_path, monkeypatch, capsys, *extra):
+    """``jaxslam run --data`` on ``_straight_log`` with 8 particles: (status, printed metrics)."""
     from jaxslam.datasets.log_format import save_log
 
     monkeypatch.setenv("JAXSLAM_CACHE_DIR", str(tmp_path / "cache"))
     save_log(tmp_path / "log.npz", _straight_log())
     try:
         status = cli.main(["run", "--data", str(tmp_path / "log.npz"), "--out",
-                           str(tmp_path / "out"), "--set", "filter.num_particles=8",
+                           str(tmp_path / "out"), *extra, "--set", "filter.num_particles=8",
                            "--set", "filter.max_landmarks=12"])
     finally:
         _reset_cache_config()
     out = capsys.readouterr().out
+    return status, dict(line.split() for line in out.splitlines() if len(line.split()) == 2)
+
+
+def test_run_on_a_log(tmp_path, monkeypatch, capsys):
+    status, values = _run_on_straight_log(tmp_path, monkeypatch, capsys)
     assert status == 0
-    values = dict(line.split() for line in out.splitlines() if len(line.split()) == 2)
     # Noise-free observations and exact odometry: the filter must stay within a few cm.
     assert float(values["final_pose_error"]) < 0.2
     assert float(values["ate_rmse"]) < 0.2
@@ -228,19 +233,8 @@ def test_run_on_a_log(tmp_path, monkeypatch, capsys):
 
 
 def test_run_on_a_log_with_smoothing(tmp_path, monkeypatch, capsys):
-    from jaxslam.datasets.log_format import save_log
-
-    monkeypatch.setenv("JAXSLAM_CACHE_DIR", str(tmp_path / "cache"))
-    save_log(tmp_path / "log.npz", _straight_log())
-    try:
-        status = cli.main(["run", "--data", str(tmp_path / "log.npz"), "--out",
-                           str(tmp_path / "out"), "--smooth", "--set", "filter.num_particles=8",
-                           "--set", "filter.max_landmarks=12"])
-    finally:
-        _reset_cache_config()
-    out = capsys.readouterr().out
+    status, values = _run_on_straight_log(tmp_path, monkeypatch, capsys, "--smooth")
     assert status == 0
-    values = dict(line.split() for line in out.splitlines() if len(line.split()) == 2)
     # Exact odometry and noise-free observations: the smoothed history sits on the truth
     # (to the few cm the filter's sampled poses leave) like the online estimate.
     assert float(values["smoothed_ate_rmse"]) < 0.2
