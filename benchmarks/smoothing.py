@@ -18,6 +18,7 @@ import time
 import numpy as np
 
 from jaxslam import metrics, smoothing
+from jaxslam.datasets.log_format import odometry_path
 from jaxslam.types import default_params
 
 
@@ -49,15 +50,6 @@ def synthetic_drive(steps: int, num_obs: int, num_trees: int, seed: int = 0):
     return start, poses, odometry, z, ids
 
 
-def dead_reckoning(start, odometry):
-    pose, path = np.array(start, float), []
-    for rot1, trans, rot2 in odometry:
-        pose = np.array([pose[0] + trans * np.cos(pose[2] + rot1),
-                         pose[1] + trans * np.sin(pose[2] + rot1), pose[2] + rot1 + rot2])
-        path.append(pose)
-    return np.array(path)
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, nargs="+", default=[1000, 7230])
@@ -71,7 +63,7 @@ def main():
           f"{args.calibrate_rounds}; host NumPy float64 + scipy sparse LU (no compile step)")
     for steps in args.steps:
         start, truth, odometry, z, ids = synthetic_drive(steps, args.obs, args.trees)
-        initial = dead_reckoning(start, odometry)
+        initial = odometry_path(odometry, start)
         begin = time.perf_counter()
         out = smoothing.smooth_path(start, initial, odometry, z, ids, params,
                                     calibrate_rounds=args.calibrate_rounds)

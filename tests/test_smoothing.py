@@ -7,7 +7,9 @@ import pytest
 import scipy.sparse
 
 from jaxslam import lineage, smoothing
+from jaxslam.datasets.log_format import odometry_path
 from jaxslam.datasets.victoria_park import rigid_align_2d, rigid_transform_2d
+from jaxslam.ekf import measurement_std
 from jaxslam.filter import Lineage, estimate, run_filter
 from jaxslam.geometry import range_bearing, relative
 from jaxslam.motion import apply_odometry, odometry_std
@@ -95,6 +97,16 @@ def test_move_whitening_inverts_the_propagated_covariance(odometry):
     # triangular factor leaves round-off (~1e-15) where exact zeros belong.
     np.testing.assert_allclose(white[0][0, :2], 0.0, atol=1e-9)
     np.testing.assert_allclose(white[0][0, 2], 1.0 / np.sqrt(cov[2, 2]), rtol=1e-9)
+
+
+def test_observation_weights_are_the_filters_measurement_noise():
+    # The smoother's float64 copy of ekf.measurement_std (floors included) must agree with it.
+    params = default_params(range_noise=(0.01, 0.3), bearing_noise=(0.001, 0.02),
+                            range_std_floor=0.35, bearing_std_floor=0.025)
+    z_range = np.array([0.0, 1.0, 5.0, 20.0, 60.0])
+    sigma_range, sigma_bearing = measurement_std(jnp.asarray(z_range, F64), params)
+    np.testing.assert_allclose(smoothing._observation_std(z_range, params),
+                               np.stack([sigma_range, sigma_bearing], 1), rtol=1e-12)
 
 
 def test_zero_heading_noise_is_named():
@@ -244,14 +256,6 @@ def loop_problem(seed, steps=80, num_trees=25, heading_noise=0.01):
     return truth, np.array(odometry), np.array(z), np.array(ids)
 
 
-def integrate(start, odometry):
-    poses = [np.asarray(start, np.float64)]
-    for move in odometry:
-        poses.append(np.asarray(apply_odometry(jnp.asarray(poses[-1], F64),
-                                               jnp.asarray(move, F64))))
-    return np.array(poses[1:])
-
-
 def position_rmse(path, truth):
     """Position RMSE after the best rigid fit: the start pose and first move fix the frame
     only up to that move's noise (0.01 rad swings an 8 m circle by 8 cm)."""
@@ -282,7 +286,7 @@ def test_smoothing_undoes_heading_drift():
         truth, odometry, z, ids = loop_problem(seed)
         rng = np.random.default_rng(10 + seed)
         z = z + rng.normal(size=z.shape) * [0.01, 0.001]
-        drifted = integrate(truth[0], odometry)
+        drifted = odometry_path(odometry, truth[0])
         out = smoothing.smooth_path(truth[0], drifted, odometry, z, ids, params)
         errors.append((position_rmse(drifted, truth[1:]), position_rmse(out.path, truth[1:])))
     for dead_reckoning, smoothed in errors:
@@ -405,7 +409,7 @@ def test_noise_calibration_recovers_the_observation_noise():
     for seed in range(3):
         truth, odometry, z, ids = loop_problem(seed, steps=200)
         z = z + np.random.default_rng(10 + seed).normal(size=z.shape) * [0.01, 0.001]
-        out = smoothing.smooth_path(truth[0], integrate(truth[0], odometry), odometry, z, ids,
+        out = smoothing.smooth_path(truth[0], odometry_path(odometry, truth[0]), odometry, z, ids,
                                     params, calibrate_rounds=3)
         scales = out.noise_scales
         # 1,200 range and bearing rows estimate their scale to ~3 % (measured 0.47-0.55 over
