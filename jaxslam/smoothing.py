@@ -28,7 +28,7 @@ The history comes from ``lineage.trace_lineage`` (JAX, jit/vmap over runs). The 
 solved on the host in float64 with Levenberg-Marquardt steps on the sparse normal equations
 (``scipy.sparse``, a minimum-degree LU); its Jacobian is block sparse (3x3 move blocks on a
 band, 2x3 and 2x2 observation blocks), so one step on the 7,230-scan Victoria Park log (24k
-unknowns) takes about 0.3 s on this CPU.
+unknowns) takes 0.2-0.4 s on this CPU (benchmarks/smoothing.py: 419 ms a step at T = 7230).
 """
 from __future__ import annotations
 
@@ -241,25 +241,40 @@ def _variance_factors(residual, jacobian, steps: int, num_obs: int, probes: int 
     return np.asarray(factors)
 
 
-def _linearize(problem: _Problem, path, landmark):
-    """Whitened, Huber-weighted residual (R,), Jacobian (R, n) CSR and robust cost."""
-    steps = path.shape[0]
+def _whitened(problem: _Problem, path, landmark):
+    """Whitened residuals and their Jacobian blocks: moves e (T, 3), d/dstart, d/dend
+    (T, 3, 3); observations e (N, 2), d/dpose (N, 2, 3), d/dpoint (N, 2, 2)."""
     previous = np.concatenate([problem.start[None], path[:-1]], axis=0)
     error, jac_start, jac_end = move_residuals(previous, path, problem.delta)
     white = problem.move_white
-    move_res = np.einsum("nij,nj->ni", white, error)
-    jac_start = white @ jac_start
-    jac_end = white @ jac_end
-    move_cost = np.sum(move_res**2)
-
     obs_err, jac_pose, jac_point = observation_residuals(
         path[problem.obs_t], landmark[problem.obs_id], problem.obs_z)
-    obs_err = obs_err / problem.obs_std
-    weight, rho = _huber_weight(np.linalg.norm(obs_err, axis=1), problem.huber)
-    scale = weight[:, None] / problem.obs_std
+    inverse_std = 1.0 / problem.obs_std
+    return (np.einsum("nij,nj->ni", white, error), white @ jac_start, white @ jac_end,
+            obs_err * inverse_std, jac_pose * inverse_std[:, :, None],
+            jac_point * inverse_std[:, :, None])
+
+
+def _robust_cost(problem: _Problem, move_res, obs_res):
+    """sum ||e_move||^2 + sum rho(||e_obs||), and the IRLS weights (N,) of the observations."""
+    weight, rho = _huber_weight(np.linalg.norm(obs_res, axis=1), problem.huber)
+    return np.sum(move_res**2) + np.sum(rho), weight
+
+
+def _cost(problem: _Problem, path, landmark):
+    move_res, _, _, obs_res, _, _ = _whitened(problem, path, landmark)
+    return _robust_cost(problem, move_res, obs_res)[0]
+
+
+def _linearize(problem: _Problem, path, landmark):
+    """Whitened, Huber-weighted residual (R,), Jacobian (R, n) CSR and robust cost."""
+    steps = path.shape[0]
+    move_res, jac_start, jac_end, obs_err, jac_pose, jac_point = _whitened(problem, path,
+                                                                           landmark)
+    cost, weight = _robust_cost(problem, move_res, obs_err)
     obs_res = obs_err * weight[:, None]
-    jac_pose = jac_pose * scale[:, :, None]
-    jac_point = jac_point * scale[:, :, None]
+    jac_pose = jac_pose * weight[:, None, None]
+    jac_point = jac_point * weight[:, None, None]
 
     # Rows: 3 per move, 2 per observation. Columns: 3 per pose, then 2 per landmark.
     t = np.arange(steps)
@@ -285,17 +300,7 @@ def _linearize(problem: _Problem, path, landmark):
          (np.concatenate([r.ravel() for r in rows]), np.concatenate([c.ravel() for c in cols]))),
         shape=shape)
     residual = np.concatenate([move_res.ravel(), obs_res.ravel()])
-    return residual, jacobian, move_cost + np.sum(rho)
-
-
-def _cost(problem: _Problem, path, landmark):
-    previous = np.concatenate([problem.start[None], path[:-1]], axis=0)
-    error = move_residuals(previous, path, problem.delta)[0]
-    move_res = np.einsum("nij,nj->ni", problem.move_white, error)
-    obs_err = observation_residuals(path[problem.obs_t], landmark[problem.obs_id],
-                                    problem.obs_z)[0] / problem.obs_std
-    _, rho = _huber_weight(np.linalg.norm(obs_err, axis=1), problem.huber)
-    return np.sum(move_res**2) + np.sum(rho)
+    return residual, jacobian, cost
 
 
 def _levenberg_marquardt(problem: _Problem, path, landmark, iterations: int, tol: float,
