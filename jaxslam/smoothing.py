@@ -22,7 +22,16 @@ Probabilistic Robotics, ch. 11):
 
 This undoes what a particle filter cannot: a heading error made where no landmark is seen is
 spread back over that stretch when the loop closes, as EKF-SLAM's correlations do. The
-associations are the filter's and are not revised.
+associations are the filter's. With ``visit_gap`` the loop closures among them are revised:
+each landmark is split into visits (its sightings with no long gap), each visit has its own
+position, and visits of one landmark are tied by link factors
+
+    sum_(a,b) rho_GM(|| (m_a - m_b) / sigma_link ||),   rho_GM(n) = c^2 n^2 / (c^2 + n^2),
+
+a redescending (Geman-McClure) loss bounded by c^2, so a wrong loop closure, whose
+observations agree among themselves and so escape Huber's loss, is switched off as a whole
+(the switchable-constraint idea of Sunderhauf and Protzel, in closed form as in Agarwal et
+al.'s dynamic covariance scaling).
 
 The history comes from ``lineage.trace_lineage`` (JAX, jit/vmap over runs). The least squares is
 solved on the host in float64 with Levenberg-Marquardt steps on the sparse normal equations
@@ -57,6 +66,33 @@ class NoiseScales(NamedTuple):
     bearing: float = 1.0
 
 
+class Visits(NamedTuple):
+    """The visits of ``smooth_path(visit_gap=...)`` (``split_visits``) and their links.
+
+    position: (V, 2) smoothed position of each visit; visit_of_obs: (T, K) (-1: none);
+    landmark: (V,) the landmark of each visit; links: (M, 2) linked visit pairs;
+    link_weight: (M,) final IRLS weight of each link, 1 kept ... 0 dropped (a loop closure
+    the data contradict).
+    """
+
+    position: np.ndarray
+    visit_of_obs: np.ndarray
+    landmark: np.ndarray
+    links: np.ndarray
+    link_weight: np.ndarray
+
+
+def _largest_visit(position, visit_of_obs, visit_landmark):
+    """(L, 2): each landmark at its visit with the most observations."""
+    count = np.bincount(visit_of_obs[visit_of_obs >= 0], minlength=len(visit_landmark))
+    order = np.lexsort((-count, visit_landmark))  # by landmark, largest visit first
+    first = np.ones(len(order), bool)
+    first[1:] = visit_landmark[order][1:] != visit_landmark[order][:-1]
+    landmark = np.zeros((int(visit_landmark.max(initial=-1)) + 1, 2))
+    landmark[visit_landmark[order][first]] = position[order][first]
+    return landmark
+
+
 class Smoothed(NamedTuple):
     """Result of ``smooth_path``.
 
@@ -64,7 +100,8 @@ class Smoothed(NamedTuple):
     landmark_of_obs: (T, K) index into ``landmark`` of each observation (-1: none);
     cost: (I + 1,) robust cost before the first and after each accepted step;
     iterations: steps tried; converged: the last relative cost decrease was under ``tol``;
-    noise_scales: the ``NoiseScales`` used (estimated ones with ``calibrate_rounds``).
+    noise_scales: the ``NoiseScales`` used (estimated ones with ``calibrate_rounds``);
+    visits: ``Visits`` with ``visit_gap`` (each landmark is then at its largest visit), else None.
     """
 
     path: np.ndarray
@@ -74,6 +111,7 @@ class Smoothed(NamedTuple):
     iterations: int
     converged: bool
     noise_scales: NoiseScales = NoiseScales()
+    visits: Visits | None = None
 
 
 # --------------------------------------------------------------------------------------------
@@ -183,6 +221,54 @@ def initial_landmarks(path, z, landmark_of_obs, num_landmarks: int):
     return total / np.maximum(count, 1)[:, None]
 
 
+def split_visits(landmark_of_obs, visit_gap: int, neighbours: int = 2):
+    """Split each landmark's observations into visits and pair the visits of one landmark.
+
+    A visit is a run of a landmark's observations with no gap of more than ``visit_gap``
+    steps. Each visit gets its own position in the least squares; a link factor ties it to
+    the ``neighbours`` visits of the same landmark before it (so one wrong visit in the
+    middle does not cut the chain). A link is a loop closure the filter decided on; giving
+    it a redescending loss lets the smoother drop the ones the rest of the data contradict.
+
+    Args:
+      landmark_of_obs: (T, K) landmark index per observation, -1 for none.
+      visit_gap: steps without an observation of a landmark that end a visit (>= 1).
+      neighbours: earlier visits each visit is linked to (>= 1).
+    Returns:
+      visit_of_obs (T, K) visit index (-1 where ``landmark_of_obs`` is -1),
+      visit_landmark (V,) the landmark of each visit, links (M, 2) visit pairs (a < b).
+    """
+    if visit_gap < 1 or neighbours < 1:
+        raise ValueError(f"need visit_gap >= 1 and neighbours >= 1; got {visit_gap}, "
+                         f"{neighbours}")
+    landmark_of_obs = np.asarray(landmark_of_obs)
+    t, k = np.nonzero(landmark_of_obs >= 0)
+    ids = landmark_of_obs[t, k]
+    order = np.lexsort((t, ids))  # by landmark, then time
+    ids_sorted, t_sorted = ids[order], t[order]
+    starts = np.ones(len(order), bool)
+    starts[1:] = (ids_sorted[1:] != ids_sorted[:-1]) | (np.diff(t_sorted) > visit_gap)
+    visit_sorted = np.cumsum(starts) - 1
+    visit_of_obs = np.full(landmark_of_obs.shape, -1, np.int64)
+    visit_of_obs[t[order], k[order]] = visit_sorted
+    visit_landmark = ids_sorted[starts]
+    # Visits of one landmark are consecutive indices: pair v with v - j when same landmark.
+    visit = np.arange(len(visit_landmark))
+    links = [np.stack([visit[:-j], visit[j:]], 1)[visit_landmark[:-j] == visit_landmark[j:]]
+             for j in range(1, neighbours + 1) if j < len(visit)]
+    links = np.concatenate(links) if links else np.zeros((0, 2), np.int64)
+    return visit_of_obs, visit_landmark, links
+
+
+def _geman_mcclure_weight(norm, threshold):
+    """IRLS weight sqrt(rho'(n) / (2 n)) and rho(n) = c^2 n^2 / (c^2 + n^2) (c = threshold).
+
+    A redescending loss: a link stretched far beyond c costs at most c^2 and pulls on nothing.
+    """
+    c2 = threshold**2
+    return c2 / (c2 + norm**2), c2 * norm**2 / (c2 + norm**2)
+
+
 def _huber_weight(norm, threshold):
     """IRLS weight sqrt(rho'(n) / (2 n)) per whitened residual norm, and rho(n)."""
     inside = norm <= threshold
@@ -200,6 +286,9 @@ class _Problem(NamedTuple):
     obs_z: np.ndarray  # (N, 2)
     obs_std: np.ndarray  # (N, 2)
     huber: float
+    links: np.ndarray = np.zeros((0, 2), np.int64)  # (M, 2) landmark pairs tied together
+    link_std: float = 1.0  # [m] std of a link's (l_a - l_b)
+    link_threshold: float = 1.0  # Geman-McClure scale c on the whitened link norm
 
 
 def _rescaled(problem: _Problem, base_white, base_std, scales: NoiseScales) -> _Problem:
@@ -243,35 +332,40 @@ def _variance_factors(residual, jacobian, steps: int, num_obs: int, probes: int 
 
 def _whitened(problem: _Problem, path, landmark):
     """Whitened residuals and their Jacobian blocks: moves e (T, 3), d/dstart, d/dend
-    (T, 3, 3); observations e (N, 2), d/dpose (N, 2, 3), d/dpoint (N, 2, 2)."""
+    (T, 3, 3); observations e (N, 2), d/dpose (N, 2, 3), d/dpoint (N, 2, 2); links
+    e (M, 2) = (l_a - l_b) / link_std (Jacobians +-I / link_std)."""
     previous = np.concatenate([problem.start[None], path[:-1]], axis=0)
     error, jac_start, jac_end = move_residuals(previous, path, problem.delta)
     white = problem.move_white
     obs_err, jac_pose, jac_point = observation_residuals(
         path[problem.obs_t], landmark[problem.obs_id], problem.obs_z)
     inverse_std = 1.0 / problem.obs_std
+    link_res = (landmark[problem.links[:, 0]] - landmark[problem.links[:, 1]]) / problem.link_std
     return (np.einsum("nij,nj->ni", white, error), white @ jac_start, white @ jac_end,
             obs_err * inverse_std, jac_pose * inverse_std[:, :, None],
-            jac_point * inverse_std[:, :, None])
+            jac_point * inverse_std[:, :, None], link_res)
 
 
-def _robust_cost(problem: _Problem, move_res, obs_res):
-    """sum ||e_move||^2 + sum rho(||e_obs||), and the IRLS weights (N,) of the observations."""
+def _robust_cost(problem: _Problem, move_res, obs_res, link_res):
+    """sum ||e_move||^2 + sum rho_Huber(||e_obs||) + sum rho_GM(||e_link||), and the IRLS
+    weights of the observations (N,) and links (M,)."""
     weight, rho = _huber_weight(np.linalg.norm(obs_res, axis=1), problem.huber)
-    return np.sum(move_res**2) + np.sum(rho), weight
+    link_weight, link_rho = _geman_mcclure_weight(np.linalg.norm(link_res, axis=1),
+                                                  problem.link_threshold)
+    return np.sum(move_res**2) + np.sum(rho) + np.sum(link_rho), weight, link_weight
 
 
 def _cost(problem: _Problem, path, landmark):
-    move_res, _, _, obs_res, _, _ = _whitened(problem, path, landmark)
-    return _robust_cost(problem, move_res, obs_res)[0]
+    move_res, _, _, obs_res, _, _, link_res = _whitened(problem, path, landmark)
+    return _robust_cost(problem, move_res, obs_res, link_res)[0]
 
 
 def _linearize(problem: _Problem, path, landmark):
     """Whitened, Huber-weighted residual (R,), Jacobian (R, n) CSR and robust cost."""
     steps = path.shape[0]
-    move_res, jac_start, jac_end, obs_err, jac_pose, jac_point = _whitened(problem, path,
-                                                                           landmark)
-    cost, weight = _robust_cost(problem, move_res, obs_err)
+    (move_res, jac_start, jac_end, obs_err, jac_pose, jac_point,
+     link_err) = _whitened(problem, path, landmark)
+    cost, weight, link_weight = _robust_cost(problem, move_res, obs_err, link_err)
     obs_res = obs_err * weight[:, None]
     jac_pose = jac_pose * weight[:, None, None]
     jac_point = jac_point * weight[:, None, None]
@@ -294,12 +388,22 @@ def _linearize(problem: _Problem, path, landmark):
              np.broadcast_to(3 * steps + 2 * problem.obs_id[:, None, None]
                              + np.arange(2)[None, None, :], (num_obs, 2, 2))]
     vals += [jac_pose, jac_point]
-    shape = (3 * steps + 2 * num_obs, 3 * steps + 2 * landmark.shape[0])
+    # Links: 2 rows each, +I / std on landmark a and -I / std on landmark b, IRLS-weighted.
+    num_links = len(problem.links)
+    link_rows = (3 * steps + 2 * num_obs + 2 * np.arange(num_links)[:, None]
+                 + np.arange(2)[None, :])
+    link_value = (link_weight / problem.link_std)[:, None] * np.ones((1, 2))
+    for side, sign in ((0, 1.0), (1, -1.0)):
+        rows.append(link_rows)
+        cols.append(3 * steps + 2 * problem.links[:, side, None] + np.arange(2)[None, :])
+        vals.append(sign * link_value)
+    shape = (3 * steps + 2 * num_obs + 2 * num_links, 3 * steps + 2 * landmark.shape[0])
     jacobian = scipy.sparse.csr_matrix(
         (np.concatenate([v.ravel() for v in vals]),
          (np.concatenate([r.ravel() for r in rows]), np.concatenate([c.ravel() for c in cols]))),
         shape=shape)
-    residual = np.concatenate([move_res.ravel(), obs_res.ravel()])
+    residual = np.concatenate([move_res.ravel(), obs_res.ravel(),
+                               (link_err * link_weight[:, None]).ravel()])
     return residual, jacobian, cost
 
 
@@ -345,7 +449,9 @@ def _levenberg_marquardt(problem: _Problem, path, landmark, iterations: int, tol
 def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
                 iterations: int = 30, huber: float = 3.0, tol: float = 1e-6,
                 damping: float = 1e-6, noise_scales: NoiseScales | None = None,
-                calibrate_rounds: int = 0) -> Smoothed:
+                calibrate_rounds: int = 0, visit_gap: int | None = None,
+                link_std: float = 0.1, link_threshold: float = 3.0,
+                link_neighbours: int = 2) -> Smoothed:
     """Levenberg-Marquardt on the module docstring's least squares.
 
     Args:
@@ -365,6 +471,20 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
         (``_variance_factors``: each group's chi-square over its redundancy) and solve
         again, this many times. The noise that suits a particle filter is rarely the one
         the data show; this lets the data set the weights, with no ground truth.
+      visit_gap: None (default) keeps one position per landmark. Else, after the solve (and
+        calibration rounds) with one position per landmark, each landmark's
+        observations are split into visits (``split_visits``: a gap of more than this many
+        steps starts a new one), each visit gets its own position, and a link factor
+        rho_GM(|| (l_a - l_b) / link_std ||) ties it to the ``link_neighbours`` previous visits
+        of that landmark. rho_GM is Geman-McClure's redescending loss with scale
+        ``link_threshold``: a loop closure the filter made that the rest of the data
+        contradict stops pulling (its weight in ``Smoothed.visits.link_weight`` falls to ~0)
+        instead of bending the map around it, as a Huber-weighted observation still does.
+        The split problem is solved from the merged solution (all links satisfied there),
+        with the calibrated scales; its cost history is the one returned.
+      link_std: [m] std of a link; link_threshold: Geman-McClure scale (whitened units; a
+        link stretched link_std * link_threshold metres has ``link_weight`` 1/2);
+      link_neighbours: earlier visits each visit is linked to.
     Returns:
       ``Smoothed`` (its cost history is the last solve's).
     """
@@ -394,12 +514,15 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
     scales = NoiseScales() if noise_scales is None else NoiseScales(*noise_scales)
     if not all(np.isfinite(v) and v > 0 for v in scales):
         raise ValueError(f"noise_scales must be positive and finite; got {scales}")
+    if not (link_std > 0 and link_threshold > 0):
+        raise ValueError(f"need link_std > 0 and link_threshold > 0; got {link_std}, "
+                         f"{link_threshold}")
     num_landmarks = int(landmark_of_obs.max(initial=-1)) + 1
     delta, move_white = move_whitening(odometry, params)
     obs_t, obs_k = np.nonzero(used)
     obs_std = _observation_std(z[obs_t, obs_k, 0], params)
-    base = _Problem(start_pose, delta, move_white, obs_t,
-                    landmark_of_obs[obs_t, obs_k], z[obs_t, obs_k], obs_std, float(huber))
+    base = _Problem(start_pose, delta, move_white, obs_t, landmark_of_obs[obs_t, obs_k],
+                    z[obs_t, obs_k], obs_std, float(huber))
     problem = _rescaled(base, move_white, obs_std, scales)
     landmark = initial_landmarks(path, z, landmark_of_obs, num_landmarks)
     path, landmark, costs, step, converged = _levenberg_marquardt(
@@ -411,7 +534,21 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
         problem = _rescaled(base, move_white, obs_std, scales)
         path, landmark, costs, step, converged = _levenberg_marquardt(
             problem, path, landmark, iterations, tol, damping)
-    return Smoothed(path, landmark, landmark_of_obs, costs, step, converged, scales)
+    if visit_gap is None:
+        return Smoothed(path, landmark, landmark_of_obs, costs, step, converged, scales)
+    # Split from the merged solution: every link starts satisfied, at the least-squares
+    # compromise, and the redescending loss then lets go of the ones that stay stretched.
+    visit_of_obs, visit_landmark, links = split_visits(landmark_of_obs, int(visit_gap),
+                                                      int(link_neighbours))
+    problem = problem._replace(obs_id=visit_of_obs[obs_t, obs_k], links=links,
+                               link_std=float(link_std), link_threshold=float(link_threshold))
+    path, visit_position, costs, step, converged = _levenberg_marquardt(
+        problem, path, landmark[visit_landmark], iterations, tol, damping)
+    link_weight = _robust_cost(problem, *(_whitened(problem, path, visit_position)[i]
+                                          for i in (0, 3, 6)))[2]
+    return Smoothed(path, _largest_visit(visit_position, visit_of_obs, visit_landmark),
+                    landmark_of_obs, costs, step, converged, scales,
+                    Visits(visit_position, visit_of_obs, visit_landmark, links, link_weight))
 
 
 def smooth_lineage(start_pose, lineage_path: LineagePath, odometry, z, params: Params,
