@@ -244,6 +244,17 @@ def test_run_on_a_log_with_smoothing(tmp_path, monkeypatch, capsys):
     assert "--data" in capsys.readouterr().err
 
 
+def test_run_on_a_log_with_visit_links(tmp_path, monkeypatch, capsys):
+    status, values = _run_on_straight_log(tmp_path, monkeypatch, capsys, "--smooth",
+                                          "--visit-gap", "3")
+    assert status == 0
+    # The straight log's associations are right: no link is stretched, so the split
+    # problem keeps the merged solution (within the same few cm of the truth).
+    assert float(values["smoothed_ate_rmse"]) < 0.2
+    assert cli.main(["run", "--data", str(tmp_path / "log.npz"), "--visit-gap", "3"]) == 2
+    assert "needs --smooth" in capsys.readouterr().err
+
+
 def test_run_on_a_bad_log(tmp_path, capsys):
     np.savez(tmp_path / "log.npz", time=np.arange(3.0))
     assert cli.main(["run", "--data", str(tmp_path / "log.npz")]) == 2
