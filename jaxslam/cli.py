@@ -213,9 +213,11 @@ def _filter_log(args, log):
     initial = np.zeros(3) if log.initial_pose is None else log.initial_pose
     smooth = bool(getattr(args, "smooth", False))
     visit_gap = getattr(args, "visit_gap", None)
-    if visit_gap is not None and (not smooth or visit_gap < 1):
-        raise UsageError(f"--visit-gap {visit_gap}: needs --smooth and a gap of at least 1 "
-                         "step")
+    if visit_gap is not None and not smooth:
+        raise UsageError(f"--visit-gap {visit_gap} needs --smooth (it splits the smoothed "
+                         "history's landmarks into visits)")
+    if visit_gap is not None and visit_gap < 1:
+        raise UsageError(f"--visit-gap {visit_gap}: the gap must be at least 1 step")
     final, trace = run_filter(filter_config, jax.random.PRNGKey(args.seed), params,
                               np.asarray(log.controls, np.float32), obs,
                               np.asarray(initial, np.float32), record_lineage=smooth)

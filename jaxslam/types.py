@@ -10,6 +10,8 @@ Dimension glossary (used in every docstring of the package):
     R   independent Monte Carlo runs
     N   true trees in a simulated forest
     C   motion control vector length (3 for every built-in motion model)
+    L   landmark identities of one smoothed history (``smoothing``)
+    V   visits of those landmarks, and E links between visits (``smoothing.split_visits``)
 
 Conventions: poses are ``(x, y, theta)`` in metres and radians, theta wrapped to [-pi, pi);
 observations are ``(range, bearing)`` in the robot frame; landmark covariances are stored as

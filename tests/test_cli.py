@@ -245,14 +245,27 @@ def test_run_on_a_log_with_smoothing(tmp_path, monkeypatch, capsys):
 
 
 def test_run_on_a_log_with_visit_links(tmp_path, monkeypatch, capsys):
+    from jaxslam import smoothing
+
+    seen = {}
+    smooth_lineage = smoothing.smooth_lineage
+
+    def spy(*args, **options):
+        seen.update(options)
+        return smooth_lineage(*args, **options)
+
+    monkeypatch.setattr(smoothing, "smooth_lineage", spy)
     status, values = _run_on_straight_log(tmp_path, monkeypatch, capsys, "--smooth",
                                           "--visit-gap", "3")
-    assert status == 0
-    # The straight log's associations are right: no link is stretched, so the split
-    # problem keeps the merged solution (within the same few cm of the truth).
+    assert status == 0 and seen["visit_gap"] == 3  # the option reaches the smoother
+    # The straight log's associations are right: the smoothed history stays within the same
+    # few cm of the truth as without links.
     assert float(values["smoothed_ate_rmse"]) < 0.2
-    assert cli.main(["run", "--data", str(tmp_path / "log.npz"), "--visit-gap", "3"]) == 2
+    log = str(tmp_path / "log.npz")
+    assert cli.main(["run", "--data", log, "--visit-gap", "3"]) == 2
     assert "needs --smooth" in capsys.readouterr().err
+    assert cli.main(["run", "--data", log, "--smooth", "--visit-gap", "0"]) == 2
+    assert "at least 1 step" in capsys.readouterr().err
 
 
 def test_run_on_a_bad_log(tmp_path, capsys):

@@ -468,6 +468,21 @@ def test_split_visits_edge_cases():
     assert visit_of_obs[2, 1] == 0 and visit_landmark.tolist() == [0] and links.shape == (0, 2)
     with pytest.raises(ValueError, match="visit_gap"):
         smoothing.split_visits(single, 0)
+    with pytest.raises(ValueError, match="visit_gap"):
+        smoothing.split_visits(single, 2.5)  # not silently truncated to 2
+    with pytest.raises(ValueError, match="link_neighbours"):
+        smoothing.split_visits(single, 3, 0)
+    with pytest.raises(ValueError, match=r"\(T, K\)"):
+        smoothing.split_visits(single[:, 0], 3)
+
+
+def test_largest_visit_places_each_landmark():
+    # Landmark 0: visits 0 (1 obs) and 2 (3 obs); landmark 2: visits 1 and 3 (2 obs each,
+    # a tie: the earlier visit); landmark 1 has no visit and stays at the origin.
+    position = np.array([[1.0, 1.0], [2.0, 2.0], [3.0, 3.0], [4.0, 4.0]])
+    visit_of_obs = np.array([[0, 1, 2], [2, 1, 2], [3, 3, -1]])
+    landmark = smoothing._largest_visit(position, visit_of_obs, np.array([0, 2, 0, 2]))
+    np.testing.assert_array_equal(landmark, [[3.0, 3.0], [0.0, 0.0], [2.0, 2.0]])
 
 
 def test_link_rows_match_differences():
@@ -490,7 +505,7 @@ def test_link_rows_match_differences():
 
     def link_residual(vector):
         return smoothing._whitened(problem, vector[:3 * steps].reshape(-1, 3),
-                                   vector[3 * steps:].reshape(-1, 2))[6].ravel()
+                                   vector[3 * steps:].reshape(-1, 2)).link.ravel()
 
     np.testing.assert_allclose(residual[rows], link_residual(x), atol=1e-12)
     # Linear in the landmarks: central differences are exact up to round-off (1e-16 / 1e-6).
@@ -498,15 +513,51 @@ def test_link_rows_match_differences():
                                atol=1e-7)
 
 
+def test_robust_gradient_matches_the_cost():
+    """2 J^T r of the weighted system is the gradient of the robust cost (Huber observations,
+    Geman-McClure links): checks the IRLS weights, signs, rows and columns together."""
+    truth, odometry, z, ids = loop_problem(0, steps=24)
+    visit_of_obs, visit_landmark, links = smoothing.split_visits(ids, 2)
+    params = default_params()
+    delta, white = smoothing.move_whitening(odometry, params)
+    t, k = np.nonzero(visit_of_obs >= 0)
+    problem = smoothing._Problem(truth[0], delta, white, t, visit_of_obs[t, k], z[t, k],
+                                 smoothing._observation_std(z[t, k, 0], params), 1.0, links,
+                                 0.2, 2.0)
+    rng = np.random.default_rng(4)
+    tree = np.zeros((len(visit_landmark), 2))
+    tree[visit_of_obs[t, k]] = smoothing.initial_landmarks(truth[1:], z, ids, 25)[ids[t, k]]
+    # Visits moved by ~0.5 m: links stretched over the whole Geman-McClure curve (c = 2, i.e.
+    # 0.4 m) and many observations past the Huber threshold (1).
+    landmark = tree + rng.normal(size=tree.shape) * 0.5
+    path = truth[1:] + rng.normal(size=truth[1:].shape) * [0.05, 0.05, 0.01]
+    norms = np.linalg.norm(smoothing._whitened(problem, path, landmark).link, axis=1)
+    assert norms.min() < 2.0 < 6.0 < norms.max()
+    residual, jacobian, _ = smoothing._linearize(problem, path, landmark)
+    steps = len(path)
+
+    def cost(vector):
+        return np.array([smoothing._cost(problem, vector[:3 * steps].reshape(-1, 3),
+                                         vector[3 * steps:].reshape(-1, 2))])
+
+    x = np.concatenate([path.ravel(), landmark.ravel()])
+    numeric = numeric_jacobian(cost, x, step=1e-6)[0]
+    # Central differences of a cost ~1e3 with h = 1e-6: round-off ~1e-16 * 1e3 / 1e-6 = 1e-7,
+    # truncation ~h^2 * (third derivative ~1e4) = 1e-8; gradients are O(1)-O(1e3).
+    np.testing.assert_allclose(2.0 * jacobian.T @ residual, numeric, atol=1e-4, rtol=1e-6)
+
+
 def test_geman_mcclure_weight_is_the_irls_weight_of_its_loss():
     norm = np.linspace(0.0, 20.0, 41)[1:]
     weight, rho = smoothing._geman_mcclure_weight(norm, 3.0)
-    # IRLS: w^2 = rho'(n) / (2 n); rho' by central differences (error ~1e-12 at step 1e-5).
+    # IRLS: w^2 = rho'(n) / (2 n); rho' by central differences (error ~1e-10 at step 1e-5).
     step = 1e-5
     derivative = (smoothing._geman_mcclure_weight(norm + step, 3.0)[1]
                   - smoothing._geman_mcclure_weight(norm - step, 3.0)[1]) / (2 * step)
     np.testing.assert_allclose(weight**2, derivative / (2 * norm), rtol=1e-6)
     assert np.all(rho < 9.0)  # bounded by c^2: a dropped link costs at most that
+    weight_at = smoothing._geman_mcclure_weight(np.array([0.0, 3.0]), 3.0)[0]
+    np.testing.assert_allclose(weight_at, [1.0, 0.5])  # full weight at 0, half at c
 
 
 def test_visit_links_drop_exactly_the_wrong_loop_closures():
@@ -523,8 +574,11 @@ def test_visit_links_drop_exactly_the_wrong_loop_closures():
                                    visit_gap=5)
     visits = linked.visits
     # The true tree of each visit (the swap keeps a visit's observations on one true tree).
+    seen = visits.visit_of_obs >= 0
     true_tree = np.zeros(len(visits.landmark), int)
-    true_tree[visits.visit_of_obs[visits.visit_of_obs >= 0]] = ids[visits.visit_of_obs >= 0]
+    true_tree[visits.visit_of_obs[seen]] = ids[seen]
+    trees_per_visit = [np.unique(ids[visits.visit_of_obs == v]) for v in range(len(true_tree))]
+    assert all(len(trees) == 1 for trees in trees_per_visit)  # no visit mixes two true trees
     wrong_link = true_tree[visits.links[:, 0]] != true_tree[visits.links[:, 1]]
     assert wrong_link.sum() >= 4
     # Dropped links (weight < 0.5) are exactly the wrong ones; measured weights are < 1e-3
@@ -534,3 +588,25 @@ def test_visit_links_drop_exactly_the_wrong_loop_closures():
     # Measured: Huber 0.027 m, links 7e-10 m (exact data: the truth is then a zero-cost minimum).
     assert linked_error < 0.005 < robust_error, (linked_error, robust_error)
     chex.assert_shape(linked.landmark, (int(wrong.max()) + 1, 2))
+
+
+def test_visit_gap_edge_cases_of_smooth_path():
+    truth, odometry, z, ids = loop_problem(2, steps=40)
+    params = default_params(range_noise=(0.0, 0.02), bearing_noise=(0.0, 0.002))
+    merged = smoothing.smooth_path(truth[0], truth[1:], odometry, z, ids, params)
+    # A gap as long as the log: one visit per landmark, no link, the merged problem again.
+    whole = smoothing.smooth_path(truth[0], truth[1:], odometry, z, ids, params, visit_gap=40)
+    assert whole.visits.links.shape == (0, 2)
+    np.testing.assert_allclose(whole.path, merged.path, atol=1e-9)
+    np.testing.assert_allclose(whole.landmark, merged.landmark, atol=1e-9)
+    # Nothing associated: the path is odometry alone, no visit.
+    nothing = np.full_like(ids, -1)
+    alone = smoothing.smooth_path(truth[0], truth[1:], odometry, z, nothing, params,
+                                  visit_gap=5)
+    assert alone.visits.landmark.shape == (0,) and np.all(np.isfinite(alone.path))
+    for bad in (0, 2.5):
+        with pytest.raises(ValueError, match="visit_gap"):
+            smoothing.smooth_path(truth[0], truth[1:], odometry, z, ids, params, visit_gap=bad)
+    with pytest.raises(ValueError, match="link_std"):
+        smoothing.smooth_path(truth[0], truth[1:], odometry, z, ids, params, visit_gap=5,
+                              link_std=0.0)
