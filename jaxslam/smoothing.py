@@ -466,6 +466,23 @@ def _levenberg_marquardt(problem: _Problem, path, landmark, iterations: int, tol
     return path, landmark, np.asarray(costs), step, converged
 
 
+def _check_inputs(start_pose, path, odometry, z, landmark_of_obs, steps: int):
+    """ValueError naming the first bad input of ``smooth_path`` (shapes, NaN)."""
+    if steps < 1 or path.shape != (steps, 3) or odometry.shape != (steps, 3):
+        raise ValueError(f"path and odometry must both be (T, 3) with T >= 1; got {path.shape} "
+                         f"and {odometry.shape}")
+    if start_pose.shape != (3,) or not np.all(np.isfinite(start_pose)):
+        raise ValueError(f"start_pose must be a finite (3,) pose; got {start_pose}")
+    if not np.all(np.isfinite(odometry)):
+        raise ValueError(f"odometry has {np.sum(~np.isfinite(odometry))} NaN/inf entries "
+                         f"(first at step {np.argwhere(~np.isfinite(odometry))[0, 0]})")
+    if z.shape[:1] != (steps,) or z.shape[2:] != (2,) or landmark_of_obs.shape != z.shape[:2]:
+        raise ValueError(f"z must be (T, K, 2) and landmark_of_obs (T, K) with T = {steps}; "
+                         f"got {z.shape} and {landmark_of_obs.shape}")
+    if not np.all(np.isfinite(z[landmark_of_obs >= 0])) or not np.all(np.isfinite(path)):
+        raise ValueError("smooth_path needs finite poses and finite associated observations")
+
+
 def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
                 iterations: int = 30, huber: float = 3.0, tol: float = 1e-6,
                 damping: float = 1e-6, noise_scales: NoiseScales | None = None,
@@ -517,28 +534,16 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
     start_pose = np.asarray(start_pose, np.float64)
     landmark_of_obs = np.asarray(landmark_of_obs)
     steps = path.shape[0] if path.ndim else 0
-    if steps < 1 or path.shape != (steps, 3) or odometry.shape != (steps, 3):
-        raise ValueError(f"path and odometry must both be (T, 3) with T >= 1; got {path.shape} "
-                         f"and {odometry.shape}")
-    if start_pose.shape != (3,) or not np.all(np.isfinite(start_pose)):
-        raise ValueError(f"start_pose must be a finite (3,) pose; got {start_pose}")
-    if not np.all(np.isfinite(odometry)):
-        raise ValueError(f"odometry has {np.sum(~np.isfinite(odometry))} NaN/inf entries "
-                         f"(first at step {np.argwhere(~np.isfinite(odometry))[0, 0]})")
+    _check_inputs(start_pose, path, odometry, z, landmark_of_obs, steps)
     if iterations < 1 or calibrate_rounds < 0 or not huber > 0:
         raise ValueError(f"need iterations >= 1, calibrate_rounds >= 0 and huber > 0; got "
                          f"{iterations}, {calibrate_rounds}, {huber}")
-    if z.shape[:1] != (steps,) or z.shape[2:] != (2,) or landmark_of_obs.shape != z.shape[:2]:
-        raise ValueError(f"z must be (T, K, 2) and landmark_of_obs (T, K) with T = {steps}; "
-                         f"got {z.shape} and {landmark_of_obs.shape}")
-    used = landmark_of_obs >= 0
-    if not np.all(np.isfinite(z[used])) or not np.all(np.isfinite(path)):
-        raise ValueError("smooth_path needs finite poses and finite associated observations")
     if visit_gap is not None:
         _check_visit_options(visit_gap, link_neighbours)
         if not (link_std > 0 and link_threshold > 0):
             raise ValueError(f"need link_std > 0 and link_threshold > 0; got {link_std}, "
                              f"{link_threshold}")
+    used = landmark_of_obs >= 0
     scales = NoiseScales() if noise_scales is None else NoiseScales(*noise_scales)
     if not all(np.isfinite(v) and v > 0 for v in scales):
         raise ValueError(f"noise_scales must be positive and finite; got {scales}")
