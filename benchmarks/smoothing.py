@@ -79,10 +79,15 @@ def main():
                                        align=True))
         drift = float(metrics.ate_rmse(initial.astype(np.float32), truth.astype(np.float32),
                                        align=True))
-        print(f"T = {steps:5d}: {unknowns} unknowns, {ids.size} observations, "
-              f"{out.iterations} LM steps, {seconds:.2f} s "
-              f"({1e3 * seconds / max(out.iterations, 1):.0f} ms a step); aligned position RMSE "
-              f"{error:.3f} m (dead reckoning {drift:.2f} m)")
+        if out.visits is None:
+            solve = (f"{out.iterations} LM steps, {seconds:.2f} s "
+                     f"({1e3 * seconds / max(out.iterations, 1):.0f} ms a step)")
+        else:  # the merged solve, then the split one: time for both, steps of the last
+            solve = (f"{len(out.visits.links)} links ({int(np.sum(out.visits.link_weight < 0.5))}"
+                     f" dropped), {seconds:.2f} s for the merged and split solves "
+                     f"({out.iterations} LM steps in the split one)")
+        print(f"T = {steps:5d}: {unknowns} unknowns, {ids.size} observations, {solve}; "
+              f"aligned position RMSE {error:.3f} m (dead reckoning {drift:.2f} m)")
 
 
 if __name__ == "__main__":
