@@ -29,6 +29,9 @@ def parse_args():
     parser.add_argument("--mc-chunk", type=int, default=20,
                         help="runs vmapped at a time (each records a 64 MB lineage)")
     parser.add_argument("--scans", type=int, default=None, help="prefix length (default all)")
+    parser.add_argument("--smooth-visit-gap", type=int, default=None, metavar="SCANS",
+                        help="let the smoother revise loop closures, visits split at gaps of "
+                             "SCANS (100 tested; off by default, see victoria_park_slam)")
     parser.add_argument("--out", default="results/victoria_park")
     return parser.parse_args()
 
@@ -205,7 +208,8 @@ def main():
     profile = vps.steering_bias_profile(data, jax.tree.map(lambda leaf: leaf[:steps], obs))
     config = vps.victoria_park_config(num_particles=args.particles)
     run = vps.run_victoria_park(jax.random.key(args.seed), data, config, observations=obs,
-                                num_scans=args.scans, steering_bias=profile)
+                                num_scans=args.scans, steering_bias=profile,
+                                smooth_visit_gap=args.smooth_visit_gap)
 
     def dead_reckoning_error(path):
         return vpm.gps_error(log.time[:steps], path[:steps, :2], log.gps_time, log.gps_xy)
@@ -241,7 +245,8 @@ def main():
         batch = vps.run_victoria_park_batch(jax.random.key(args.seed + 1), data, args.mc_runs,
                                             mc_config, observations=obs, num_scans=args.scans,
                                             steering_bias=profile, smooth=True,
-                                            chunk=args.mc_chunk)
+                                            chunk=args.mc_chunk,
+                                            smooth_visit_gap=args.smooth_visit_gap)
         smoothed = batch.smoothed_rmse
         numbers["monte_carlo"] = dict(
             runs=args.mc_runs, particles=args.mc_particles,

@@ -191,6 +191,11 @@ def test_batch_smoothing_shapes_and_options(park):
     # 120 scans (26 s of driving): every path within 2 m of GPS (measured: online
     # 0.77-0.78 m, smoothed 0.82 m: the three runs share their associations).
     assert np.all(batch.rmse < 2.0) and np.all(batch.smoothed_rmse < 2.0)
+    # The loop-closure revision (off by default) runs through the same path: 120 scans have
+    # few revisits, so it must stay within the same 2 m bound.
+    linked = vps.run_victoria_park_batch(jax.random.key(0), park, 2, config, num_scans=120,
+                                         smooth=True, progress=False, smooth_visit_gap=30)
+    assert np.all(np.isfinite(linked.smoothed_path)) and np.all(linked.smoothed_rmse < 2.0)
     plain = vps.run_victoria_park_batch(jax.random.key(0), park, 3, config, num_scans=120)
     assert plain.smoothed_path is None and plain.smoothed_rmse is None
     # Run r uses key fold_in(key, r) whether the runs go all at once or 2 at a time (with a
