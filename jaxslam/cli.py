@@ -371,8 +371,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--visit-gap", type=int, default=None, metavar="STEPS",
                      help="with --smooth: split each landmark into visits separated by more "
                           "than STEPS steps, tied by robust links, so the smoother can drop "
-                          "wrong loop closures (smooth_path(visit_gap=...); Victoria Park "
-                          "uses 100 scans, about 20 s)")
+                          "wrong loop closures (smooth_path(visit_gap=...); tried on "
+                          "Victoria Park with 100 scans, about 20 s; see docs/results.md)")
     _add_common(run, config_required=False)
     run.set_defaults(func=cmd_run)
 
