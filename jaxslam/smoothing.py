@@ -37,7 +37,7 @@ The history comes from ``lineage.trace_lineage`` (JAX, jit/vmap over runs). The 
 solved on the host in float64 with Levenberg-Marquardt steps on the sparse normal equations
 (``scipy.sparse``, a minimum-degree LU); its Jacobian is block sparse (3x3 move blocks on a
 band, 2x3 and 2x2 observation blocks), so one step on the 7,230-scan Victoria Park log (24k
-unknowns) takes 0.2-0.4 s on this CPU (benchmarks/smoothing.py: 419 ms a step at T = 7230).
+unknowns) takes 0.2-0.4 s on this CPU (benchmarks/smoothing.py: 379-419 ms a step at T = 7230).
 """
 from __future__ import annotations
 
