@@ -110,7 +110,7 @@ class Lineage(NamedTuple):
     ``StepInfo.match`` / ``StepInfo.birth_slot`` (-1: none), indexed before resampling;
     pose: (T, P, 3) every particle's pose after the step (after resampling). Memory is
     4 T P K + 16 T P bytes (64 MB for Victoria Park's T = 7230, P = 100, K = 18).
-    ``smoothing.trace_lineage`` extracts one particle's history from it.
+    ``lineage.trace_lineage`` extracts one particle's history from it.
     """
 
     ancestor: jnp.ndarray

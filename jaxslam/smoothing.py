@@ -239,7 +239,7 @@ def split_visits(landmark_of_obs, visit_gap: int, link_neighbours: int = 2):
       visit_of_obs (T, K) visit index (-1 where ``landmark_of_obs`` is -1),
       visit_landmark (V,) the landmark of each visit, links (E, 2) visit pairs (a < b).
     """
-    _check_visit_options(visit_gap, link_neighbours)
+    check_visit_options(visit_gap, link_neighbours)
     landmark_of_obs = np.asarray(landmark_of_obs)
     if landmark_of_obs.ndim != 2:
         raise ValueError(f"landmark_of_obs must be (T, K); got shape {landmark_of_obs.shape}")
@@ -261,7 +261,9 @@ def split_visits(landmark_of_obs, visit_gap: int, link_neighbours: int = 2):
     return visit_of_obs, visit_landmark, links
 
 
-def _check_visit_options(visit_gap, link_neighbours):
+def check_visit_options(visit_gap, link_neighbours=2):
+    """ValueError unless ``visit_gap`` and ``link_neighbours`` are integers >= 1 (callers
+    that smooth after a long filter run check first, so a bad value costs no run)."""
     for name, value in (("visit_gap", visit_gap), ("link_neighbours", link_neighbours)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"{name} must be an integer >= 1 (steps / visits); got {value!r}")
@@ -539,7 +541,7 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
         raise ValueError(f"need iterations >= 1, calibrate_rounds >= 0 and huber > 0; got "
                          f"{iterations}, {calibrate_rounds}, {huber}")
     if visit_gap is not None:
-        _check_visit_options(visit_gap, link_neighbours)
+        check_visit_options(visit_gap, link_neighbours)
         if not (link_std > 0 and link_threshold > 0):
             raise ValueError(f"need link_std > 0 and link_threshold > 0; got {link_std}, "
                              f"{link_threshold}")

@@ -202,6 +202,23 @@ def test_batch_smoothing_shapes_and_options(park):
     # remainder of 1): the same paths up to float32 rounding of a differently batched
     # program (1 mm on poses ~30 m from the start).
     np.testing.assert_allclose(batch.path, plain.path, atol=1e-3)
+    # A bad gap is refused before the filter runs, not after it (a 30-min study lost):
+    # compiling the filter here fails the test.
+    def no_filter(*args, **kwargs):
+        raise AssertionError("the filter ran before the smoothing options were checked")
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(vps, "_compiled", no_filter)
+        for bad in (0, 2.5):
+            with pytest.raises(ValueError, match="visit_gap"):
+                vps.run_victoria_park_batch(jax.random.key(0), park, 2, config,
+                                            num_scans=120, smooth=True, smooth_visit_gap=bad)
+            with pytest.raises(ValueError, match="visit_gap"):
+                vps.run_victoria_park(jax.random.key(0), park, config, num_scans=120,
+                                      smooth_visit_gap=bad)
+        with pytest.raises(ValueError, match="smooth=True"):
+            vps.run_victoria_park(jax.random.key(0), park, config, num_scans=120,
+                                  smooth=False, smooth_visit_gap=30)
     with pytest.raises(ValueError, match="chunk"):
         vps.run_victoria_park_batch(jax.random.key(0), park, 3, config, num_scans=120,
                                     smooth=True, chunk=0)
