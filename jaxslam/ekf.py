@@ -134,6 +134,30 @@ def mahalanobis_sq(z, predicted: PredictedMeasurement):
             + d_bearing * d_bearing * predicted.i_bb[None, :])
 
 
+def radius_distance_sq(obs_radius, landmark_radius, landmark_count, params: Params):
+    """Squared standardised difference of a measured trunk radius and a landmark's radius.
+
+    d_r2 = (r_obs - r_bar)^2 / (sigma_r^2 (1 + 1/n)), sigma_r = ``params.radius_noise``:
+    r_bar is the landmark's running mean of n measured radii, each with std sigma_r, so the
+    difference has variance sigma_r^2 + sigma_r^2 / n. It is 0 (the radius says nothing) when
+    sigma_r <= 0 (the default: radii unused) or either radius is unknown (<= 0). The filter adds
+    it to the (range, bearing) Mahalanobis distance, so the gate and the weight see a third
+    degree of freedom: a trunk of the wrong thickness is matched only if the position agrees
+    well enough to pay for it. The weight gets exp(-d_r2 / 2) with no normaliser, a factor of 1
+    at agreement: a radius can only count against a match, never for it.
+
+    Args (broadcast together): obs_radius, landmark_radius [m]; landmark_count (int) updates
+    of the landmark (``Particles.observation_count``). Pairs: obs (K, 1) with landmarks (1, M)
+    -> (K, M); matched rows: (K,) with (K,) -> (K,).
+    """
+    sigma = params.radius_noise
+    count = jnp.maximum(landmark_count, 1).astype(sigma.dtype)
+    variance = jnp.maximum(sigma * sigma, 1e-30) * (1.0 + 1.0 / count)
+    diff = obs_radius - landmark_radius
+    known = (sigma > 0) & (obs_radius > 0) & (landmark_radius > 0)
+    return jnp.where(known, diff * diff / variance, 0.0)
+
+
 def gaussian_log_likelihood(mahalanobis, log_det):
     """log N(nu; 0, S) = -d2/2 - log det S / 2 - log(2 pi) for 2-vectors."""
     return -0.5 * mahalanobis - 0.5 * log_det - LOG_2PI

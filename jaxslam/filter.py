@@ -4,7 +4,9 @@ One step (seed 000; Montemerlo et al. 2002), for every particle i in parallel:
 
 1. propose a pose x_t^i (motion model, observation proposal or their mixture, ``proposal.py``);
 2. predict every landmark's measurement, the squared Mahalanobis distance d2[k, m] of every
-   observation to it, and apply the visibility boundary (hard or loose airlock);
+   observation to it, and apply the visibility boundary (hard or loose airlock); with
+   ``Params.radius_noise`` > 0 the trunk radius adds d_r2[k, m] (``ekf.radius_distance_sq``)
+   to what the gate, the associator and the weight see;
 3. associate observations to landmarks (stable matching, greedy, optimal or known ids);
 4. EKF-update matched landmarks; weight w_i *= prod_k p(z_k | x_t^i, m) where matched
    observations use N(nu; 0, S) and unexplained ones a constant (``ekf.py``);
@@ -250,6 +252,8 @@ def _associate(config: FilterConfig, params: Params, particle: Particles, match_
         _, slots = jax.lax.top_k(-jnp.where(particle.active, distance, jnp.inf), window)
         local = particle._replace(landmark_mean=particle.landmark_mean[slots],
                                   landmark_cov=particle.landmark_cov[slots],
+                                  landmark_radius=particle.landmark_radius[slots],
+                                  observation_count=particle.observation_count[slots],
                                   active=particle.active[slots],
                                   landmark_id=particle.landmark_id[slots])
     else:
@@ -262,7 +266,11 @@ def _associate(config: FilterConfig, params: Params, particle: Particles, match_
     mahalanobis = jnp.where(obs.valid[:, None] & local.active[None, :], mahalanobis, jnp.inf)
     vis = landmarks.visibility(obs.z, obs.valid, local.active, local_predicted, mahalanobis,
                                params, config.boundary)
-    cost = _association_cost(config, obs, local, mahalanobis, vis)
+    # The trunk radius, when used (params.radius_noise > 0), adds to what the gate and the
+    # associator see; visibility (explained / airlock) stays on the position alone.
+    radius_sq = ekf.radius_distance_sq(obs.radius[:, None], local.landmark_radius[None, :],
+                                       local.observation_count[None, :], params)
+    cost = _association_cost(config, obs, local, mahalanobis + radius_sq, vis)
     local_match, rounds = association.match(config.association, cost,
                                             params.association_gate, config.match_rounds)
     match = local_match
@@ -301,7 +309,9 @@ def _observe(config: FilterConfig, params: Params, particle: Particles, found: _
     d_bearing = wrap_angle(obs.z[:, 1] - pred_k.bearing)
     mahalanobis_k = (d_range**2 * pred_k.i_rr + 2.0 * d_range * d_bearing * pred_k.i_rb
                      + d_bearing**2 * pred_k.i_bb)
-    matched_ll = ekf.gaussian_log_likelihood(mahalanobis_k, pred_k.log_det)
+    radius_k = ekf.radius_distance_sq(obs.radius, particle.landmark_radius[rows],
+                                      particle.observation_count[rows], params)
+    matched_ll = ekf.gaussian_log_likelihood(mahalanobis_k + radius_k, pred_k.log_det)
     unexplained_ll = ekf.unexplained_log_likelihood(obs.z[:, 0], params)
     log_likelihood = jnp.sum(jnp.where(obs.valid, jnp.where(matched_obs, matched_ll,
                                                             unexplained_ll), 0.0))

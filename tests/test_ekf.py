@@ -357,3 +357,52 @@ def test_add_pose_uncertainty_zero_cov_is_identity_and_vmaps(params64):
         one = ekf.add_pose_uncertainty(predicted[i], pose_covs[i])
         np.testing.assert_allclose(batched.s_bb[i], one.s_bb, rtol=1e-12)
         np.testing.assert_allclose(batched.i_rb[i], one.i_rb, rtol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
+# Trunk radius term
+
+
+def ref_radius_distance_sq(obs_radius, landmark_radius, count, sigma):
+    """Plain float64 loop: (r - r_bar)^2 / (sigma^2 (1 + 1/n)), 0 when a radius is unknown."""
+    out = np.zeros((len(obs_radius), len(landmark_radius)))
+    for k, r in enumerate(obs_radius):
+        for m, (r_bar, n) in enumerate(zip(landmark_radius, count)):
+            if sigma > 0 and r > 0 and r_bar > 0:
+                out[k, m] = (r - r_bar) ** 2 / (sigma**2 * (1.0 + 1.0 / max(n, 1)))
+    return out
+
+
+@pytest.mark.parametrize("use_jit", [False, True])
+def test_radius_distance_sq_vs_reference(use_jit):
+    rng = np.random.default_rng(11)
+    # Unknown radii (0, and a negative one) on both sides, and a never-updated count (0).
+    obs_radius = np.r_[rng.uniform(0.05, 0.6, 5), 0.0, -0.1]
+    landmark_radius = np.r_[rng.uniform(0.05, 0.6, 6), 0.0]
+    count = np.r_[rng.integers(1, 40, 5), 0, 3]
+    params = default_params(dtype=jnp.float64, radius_noise=0.05)
+    fn = jax.jit(ekf.radius_distance_sq) if use_jit else ekf.radius_distance_sq
+    got = np.asarray(fn(jnp.asarray(obs_radius)[:, None], jnp.asarray(landmark_radius)[None, :],
+                        jnp.asarray(count)[None, :], params))
+    assert got.shape == (7, 7) and got.dtype == np.float64
+    np.testing.assert_allclose(got, ref_radius_distance_sq(obs_radius, landmark_radius, count,
+                                                           0.05), rtol=RTOL, atol=0.0)
+    assert np.all(got[5:] == 0.0) and np.all(got[:, 6] == 0.0)
+    # Matched rows (K,) against (K,), and vmapped over particles, give the same numbers.
+    rows = np.asarray(fn(jnp.asarray(obs_radius), jnp.asarray(landmark_radius),
+                         jnp.asarray(count), params))
+    np.testing.assert_allclose(rows, np.diag(got), rtol=RTOL)
+    stacked = jnp.stack([jnp.asarray(landmark_radius), jnp.asarray(landmark_radius[::-1])])
+    batched = np.asarray(jax.vmap(lambda lm: fn(jnp.asarray(obs_radius)[:, None], lm[None, :],
+                                                jnp.asarray(count)[None, :], params))(stacked))
+    np.testing.assert_allclose(batched[1], ref_radius_distance_sq(
+        obs_radius, landmark_radius[::-1], count, 0.05), rtol=RTOL)
+
+
+def test_radius_distance_sq_is_off_by_default():
+    """default_params has radius_noise = 0: the radius changes nothing (finite zeros)."""
+    params = default_params(dtype=jnp.float64)
+    got = ekf.radius_distance_sq(jnp.asarray([0.1, 0.5])[:, None],
+                                 jnp.asarray([0.3, 0.2])[None, :], jnp.asarray([1, 5])[None, :],
+                                 params)
+    np.testing.assert_array_equal(np.asarray(got), 0.0)

@@ -397,3 +397,59 @@ def test_run_filter_rejects_bad_shapes(circle):
         run_filter(config, jax.random.key(0), default_params(), controls, obs)
     with pytest.raises(ValueError, match=r"\(T, 3\)"):
         run_filter(config, jax.random.key(0), default_params(), controls[:, :2], obs)
+
+
+# ---------------------------------------------------------------------------------------------
+# Trunk radius in the association and the weight
+
+
+def _radius_case(landmark_radius, window=0):
+    """Four particles at the origin, motion noise 0 (every particle lands on the same pose),
+    two landmarks 0.6 m apart with the given radii, each seen 3 times."""
+    config = dataclasses.replace(EDGE, proposal="motion", association_window=window)
+    filt = make_filter(config)
+    state = state_with_map(filt, [[5.0, 0.0], [5.0, 0.6]])
+    p = state.particles
+    state = state._replace(particles=p._replace(
+        landmark_radius=p.landmark_radius.at[:, :2].set(jnp.asarray(landmark_radius, F32))))
+    return filt, state
+
+
+@pytest.mark.parametrize("window", [0, 2])
+def test_radius_picks_the_trunk_of_matching_thickness(window):
+    # The observation is 0.2 m from the thin landmark (slot 0) and 0.4 m from the thick one
+    # (slot 1), and measures a thick trunk. By position alone it goes to slot 0; with the
+    # radius (std 0.05 m, a 0.3 m disagreement = 6 sigma) it goes to slot 1. Window 2 < M = 4
+    # takes the association-window path (radii gathered with the window's landmarks).
+    zero = (0.0, 0.0, 0.0)
+    filt, state = _radius_case([[0.1, 0.4]] * 4, window)
+    z = jnp.asarray([[5.0, np.arctan2(0.2, 5.0)], [0.0, 0.0], [0.0, 0.0]], F32)
+    obs = make_observations(z, valid=jnp.asarray([True, False, False]),
+                            radius=jnp.asarray([0.4, 0.0, 0.0], F32))
+    step = jax.jit(filt.step)
+    for sigma, slot in ((0.0, 0), (0.05, 1)):
+        params = default_params(rot1_noise=zero, trans_noise=zero, rot2_noise=zero,
+                                range_noise=(0.0, 0.3), bearing_noise=(0.0, 0.06),
+                                radius_noise=sigma, ess_threshold=0.0)
+        _, info = step(jax.random.key(3), state, params, jnp.zeros(3, F32), obs)
+        np.testing.assert_array_equal(np.asarray(info.match)[:, 0], slot)
+
+
+def test_radius_weight_is_the_gaussian_factor():
+    # Same pose and map in every particle except the matched landmark's radius: the log
+    # weights then differ by exactly -d_r2 / 2, d_r2 = (r - r_bar)^2 / (sigma^2 (1 + 1/n)),
+    # n = 3 updates. float32 weights: 1e-4 absolute on differences of order 1.
+    zero = (0.0, 0.0, 0.0)
+    radii = np.array([0.30, 0.35, 0.40, 0.20])
+    filt, state = _radius_case(np.stack([radii, np.full(4, 0.5)], 1))
+    z = jnp.asarray([[5.0, 0.0], [0.0, 0.0], [0.0, 0.0]], F32)
+    obs = make_observations(z, valid=jnp.asarray([True, False, False]),
+                            radius=jnp.asarray([0.3, 0.0, 0.0], F32))
+    params = default_params(rot1_noise=zero, trans_noise=zero, rot2_noise=zero,
+                            range_noise=(0.0, 0.1), bearing_noise=(0.0, 0.05),
+                            radius_noise=0.05, association_gate=100.0, ess_threshold=0.0)
+    new_state, info = jax.jit(filt.step)(jax.random.key(4), state, params, jnp.zeros(3, F32), obs)
+    np.testing.assert_array_equal(np.asarray(info.match)[:, 0], 0)
+    log_weight = np.asarray(new_state.log_weight, np.float64)
+    expected = -0.5 * (0.3 - radii) ** 2 / (0.05**2 * (1 + 1 / 3))
+    np.testing.assert_allclose(log_weight - log_weight[0], expected - expected[0], atol=1e-4)
