@@ -204,12 +204,12 @@ def _straight_log(steps=15, num_obs=6):
                     obs_valid=z[:, :num_obs, 0] < 8.0, truth_pose=truth, truth_landmarks=trees)
 
 
-def _run_on_straight_log(tmp_path, monkeypatch, capsys, *extra):
+def _run_on_straight_log(tmp_path, monkeypatch, capsys, *extra, log=None):
     """``jaxslam run --data`` on ``_straight_log`` with 8 particles: (status, printed metrics)."""
     from jaxslam.datasets.log_format import save_log
 
     monkeypatch.setenv("JAXSLAM_CACHE_DIR", str(tmp_path / "cache"))
-    save_log(tmp_path / "log.npz", _straight_log())
+    save_log(tmp_path / "log.npz", _straight_log() if log is None else log)
     try:
         status = cli.main(["run", "--data", str(tmp_path / "log.npz"), "--out",
                            str(tmp_path / "out"), *extra, "--set", "filter.num_particles=8",
@@ -266,6 +266,32 @@ def test_run_on_a_log_with_visit_links(tmp_path, monkeypatch, capsys):
     assert "needs --smooth" in capsys.readouterr().err
     assert cli.main(["run", "--data", log, "--smooth", "--visit-gap", "0"]) == 2
     assert "at least 1 step" in capsys.readouterr().err
+
+
+def test_run_on_a_log_with_trunk_radii(tmp_path, monkeypatch, capsys):
+    # docs/log_format.md: a log's obs_radius joins association when params.radius_noise is
+    # set. The setting must reach the filter, and with radii that agree (each tree its own
+    # constant radius) the run stays within the same few cm as without them.
+    import jaxslam.filter
+
+    seen = {}
+    run_filter = jaxslam.filter.run_filter
+
+    def spy(config, key, params, *args, **options):
+        seen["radius_noise"] = float(params.radius_noise)
+        seen["gate"] = float(params.association_gate)
+        return run_filter(config, key, params, *args, **options)
+
+    monkeypatch.setattr(jaxslam.filter, "run_filter", spy)
+    log = _straight_log()
+    radius = np.broadcast_to([0.1, 0.2, 0.3, 0.15, 0.25, 0.35], log.obs_valid.shape)
+    status, values = _run_on_straight_log(
+        tmp_path, monkeypatch, capsys, "--set", "params.radius_noise=0.07", "--set",
+        "params.association_gate=16.27", log=log._replace(obs_radius=np.array(radius)))
+    assert status == 0
+    assert seen == {"radius_noise": pytest.approx(0.07), "gate": pytest.approx(16.27)}
+    assert float(values["ate_rmse"]) < 0.2
+    assert int(float(values["num_landmarks"])) >= 5
 
 
 def test_run_on_a_bad_log(tmp_path, capsys):
