@@ -116,7 +116,9 @@ def settings_line() -> str:
             f"{config.boundary} boundary, M = {config.max_landmarks}, K = {config.max_obs}; "
             f"motion noise rot {noise['rot1_noise']}, trans {noise['trans_noise']} "
             f"(seed 000 Eq. 1); observation noise range "
-            f"{vps.PARAM_DEFAULTS['range_noise']}, bearing {vps.PARAM_DEFAULTS['bearing_noise']}; "
+            f"{vps.PARAM_DEFAULTS['range_noise']}, bearing {vps.PARAM_DEFAULTS['bearing_noise']}, "
+            f"trunk radius std {vps.PARAM_DEFAULTS['radius_noise']} m (in association and "
+            f"weights; gate {vps.PARAM_DEFAULTS['association_gate']}); "
             f"matching out to {vps.PARAM_DEFAULTS['max_range']:.0f} m, misses counted within "
             f"{vps.PARAM_DEFAULTS['miss_range']:.0f} m; steering bias: the laser-only profile "
             f"(steering_bias_profile, {vps.BIAS_WINDOW}-scan windows)")

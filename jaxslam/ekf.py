@@ -144,11 +144,13 @@ def radius_distance_sq(obs_radius, landmark_radius, landmark_count, params: Para
     it to the (range, bearing) Mahalanobis distance, so the gate and the weight see a third
     degree of freedom: a trunk of the wrong thickness is matched only if the position agrees
     well enough to pay for it. The weight gets exp(-d_r2 / 2) with no normaliser, a factor of 1
-    at agreement: a radius can only count against a match, never for it.
+    at agreement: a radius can only count against a match, never for it. (The normaliser
+    -log(1 + 1/n) / 2, up to 0.35 at n = 1, is left out on purpose: it would make every match
+    of a young landmark cost more than its position alone, whatever its radius.)
 
-    Args (broadcast together): obs_radius, landmark_radius [m]; landmark_count (int) updates
-    of the landmark (``Particles.observation_count``). Pairs: obs (K, 1) with landmarks (1, M)
-    -> (K, M); matched rows: (K,) with (K,) -> (K,).
+    Args (broadcast together): obs_radius, landmark_radius [m]; landmark_count (int) radii
+    averaged into the landmark's (``Particles.radius_count``). Pairs: obs (K, 1) with
+    landmarks (1, M) -> (K, M); matched rows: (K,) with (K,) -> (K,).
     """
     sigma = params.radius_noise
     count = jnp.maximum(landmark_count, 1).astype(sigma.dtype)

@@ -166,7 +166,8 @@ def sanitize_observations(obs: Observations):
     invalid = obs.valid & ~well_formed
     valid = obs.valid & well_formed
     z = jnp.where(valid[..., None], z, 0.0)
-    radius = jnp.where(valid & jnp.isfinite(obs.radius), obs.radius, 0.0)
+    # A radius that is not a finite positive number is unknown (0), whatever the row.
+    radius = jnp.where(valid & jnp.isfinite(obs.radius) & (obs.radius > 0), obs.radius, 0.0)
     clean = obs._replace(z=z, valid=valid, radius=radius)
     return clean, jnp.sum(invalid).astype(jnp.int32)
 
@@ -253,7 +254,7 @@ def _associate(config: FilterConfig, params: Params, particle: Particles, match_
         local = particle._replace(landmark_mean=particle.landmark_mean[slots],
                                   landmark_cov=particle.landmark_cov[slots],
                                   landmark_radius=particle.landmark_radius[slots],
-                                  observation_count=particle.observation_count[slots],
+                                  radius_count=particle.radius_count[slots],
                                   active=particle.active[slots],
                                   landmark_id=particle.landmark_id[slots])
     else:
@@ -269,7 +270,7 @@ def _associate(config: FilterConfig, params: Params, particle: Particles, match_
     # The trunk radius, when used (params.radius_noise > 0), adds to what the gate and the
     # associator see; visibility (explained / airlock) stays on the position alone.
     radius_sq = ekf.radius_distance_sq(obs.radius[:, None], local.landmark_radius[None, :],
-                                       local.observation_count[None, :], params)
+                                       local.radius_count[None, :], params)
     cost = _association_cost(config, obs, local, mahalanobis + radius_sq, vis)
     local_match, rounds = association.match(config.association, cost,
                                             params.association_gate, config.match_rounds)
@@ -310,7 +311,7 @@ def _observe(config: FilterConfig, params: Params, particle: Particles, found: _
     mahalanobis_k = (d_range**2 * pred_k.i_rr + 2.0 * d_range * d_bearing * pred_k.i_rb
                      + d_bearing**2 * pred_k.i_bb)
     radius_k = ekf.radius_distance_sq(obs.radius, particle.landmark_radius[rows],
-                                      particle.observation_count[rows], params)
+                                      particle.radius_count[rows], params)
     matched_ll = ekf.gaussian_log_likelihood(mahalanobis_k + radius_k, pred_k.log_det)
     unexplained_ll = ekf.unexplained_log_likelihood(obs.z[:, 0], params)
     log_likelihood = jnp.sum(jnp.where(obs.valid, jnp.where(matched_obs, matched_ll,
@@ -322,12 +323,12 @@ def _observe(config: FilterConfig, params: Params, particle: Particles, found: _
     cov = particle.landmark_cov.at[slot_of_obs].set(new_cov, mode="drop")
     radius_obs = obs.radius[jnp.clip(obs_of_slot, 0)]
     count = particle.observation_count + matched_slot.astype(jnp.int32)
-    # Running mean of measured radii; a landmark with no radius yet (0) takes the first one.
+    # Running mean over the measured radii only (a landmark with none yet takes the first).
+    has_radius = matched_slot & (radius_obs > 0)
+    radius_count = particle.radius_count + has_radius.astype(jnp.int32)
     running = particle.landmark_radius + (radius_obs - particle.landmark_radius) / jnp.maximum(
-        count, 1)
-    radius = jnp.where(matched_slot & (radius_obs > 0),
-                       jnp.where(particle.landmark_radius > 0, running, radius_obs),
-                       particle.landmark_radius)
+        radius_count, 1)
+    radius = jnp.where(has_radius, running, particle.landmark_radius)
 
     missed = vis.expected & ~matched_slot & ~vis.explained
     existence = landmarks.update_existence(particle.existence, matched_slot, missed, params)
@@ -337,6 +338,7 @@ def _observe(config: FilterConfig, params: Params, particle: Particles, found: _
     cov = jnp.where(keep[:, None], cov, empty_cov)
     radius = jnp.where(keep, radius, empty_radius)
     count = jnp.where(keep, count, 0)
+    radius_count = jnp.where(keep, radius_count, 0)
     landmark_id = jnp.where(keep, particle.landmark_id, -1)
 
     birth = vis.usable_obs & ~matched_obs
@@ -358,6 +360,8 @@ def _observe(config: FilterConfig, params: Params, particle: Particles, found: _
             jnp.where(keep, existence, 0.0), slot,
             jnp.broadcast_to(params.existence_init, slot.shape).astype(existence.dtype)),
         observation_count=landmarks.scatter_rows(count, slot, jnp.ones_like(slot)),
+        radius_count=landmarks.scatter_rows(radius_count, slot,
+                                            (obs.radius > 0).astype(jnp.int32)),
     )
     birth_slot = jnp.where(slot < num_slots, slot, -1).astype(jnp.int32)
     return _ObserveResult(updated, log_likelihood, match, rounds, dropped,
@@ -431,6 +435,7 @@ def _init(config: FilterConfig, initial_pose=None, dtype=jnp.float32) -> FilterS
         active=jnp.zeros((num, slots), bool),
         existence=jnp.zeros((num, slots), dtype),
         observation_count=jnp.zeros((num, slots), jnp.int32),
+        radius_count=jnp.zeros((num, slots), jnp.int32),
     )
     return FilterState(particles, jnp.full((num,), -jnp.log(num), dtype),
                        jnp.zeros((), dtype), jnp.zeros((), dtype), jnp.zeros((), jnp.int32))

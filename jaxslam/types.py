@@ -147,8 +147,11 @@ class Params(NamedTuple):
       range_std_floor / bearing_std_floor: lower bounds on the two stds. Table 2's constants
         are zero, so without a floor the covariance is singular at distance 0.
       radius_noise: std [m] of one measured trunk radius (``Observations.radius``). When > 0,
-        the radius joins the association and the weight (``ekf.radius_distance_sq``): a third
-        degree of freedom, so a gate of 16.3 (chi-square 3 dof, 99.9 %) matches 13.8 for two.
+        the radius joins the association and the weight (``ekf.radius_distance_sq``): pairs
+        where both radii are known then have a third degree of freedom, so raise
+        ``association_gate`` to match (chi-square 3 dof: 99.9 % 16.27 where 2 dof give 13.82;
+        the default 25 becomes ~28). The same gate applies to pairs with an unknown radius
+        (position only) and to the airlock's position tests, which it makes a little looser.
         Default 0: radii are only averaged into ``Particles.landmark_radius``.
     Sensor:
       max_range / min_range: visibility limits [m].
@@ -273,11 +276,14 @@ class Particles(NamedTuple):
       pose: (P, 3) particle poses (x, y, theta).
       landmark_mean: (P, M, 2) landmark positions in the world frame.
       landmark_cov: (P, M, 3) landmark covariance components (sxx, sxy, syy).
-      landmark_radius: (P, M) trunk radius estimate (running mean; 0 when never measured).
+      landmark_radius: (P, M) trunk radius estimate: the running mean of the ``radius_count``
+        measured radii (0 while none was measured).
       landmark_id: (P, M) int32 true-tree id (``association="known"``); -1 when unknown.
       active: (P, M) bool slot occupancy.
       existence: (P, M) existence log-odds of each landmark.
       observation_count: (P, M) int32 number of updates since birth (1 at birth).
+      radius_count: (P, M) int32 number of those updates (and the birth) that carried a
+        measured radius (``Observations.radius`` > 0).
     Inactive slots hold finite values (zero mean, identity covariance) and are masked.
     """
 
@@ -289,6 +295,7 @@ class Particles(NamedTuple):
     active: jnp.ndarray
     existence: jnp.ndarray
     observation_count: jnp.ndarray
+    radius_count: jnp.ndarray
 
 
 class FilterState(NamedTuple):

@@ -395,6 +395,7 @@ def test_radius_distance_sq_vs_reference(use_jit):
     stacked = jnp.stack([jnp.asarray(landmark_radius), jnp.asarray(landmark_radius[::-1])])
     batched = np.asarray(jax.vmap(lambda lm: fn(jnp.asarray(obs_radius)[:, None], lm[None, :],
                                                 jnp.asarray(count)[None, :], params))(stacked))
+    np.testing.assert_allclose(batched[0], got, rtol=RTOL)
     np.testing.assert_allclose(batched[1], ref_radius_distance_sq(
         obs_radius, landmark_radius[::-1], count, 0.05), rtol=RTOL)
 

@@ -402,54 +402,121 @@ def test_run_filter_rejects_bad_shapes(circle):
 # ---------------------------------------------------------------------------------------------
 # Trunk radius in the association and the weight
 
+ZERO_MOTION = dict(rot1_noise=(0.0, 0.0, 0.0), trans_noise=(0.0, 0.0, 0.0),
+                   rot2_noise=(0.0, 0.0, 0.0))
 
-def _radius_case(landmark_radius, window=0):
-    """Four particles at the origin, motion noise 0 (every particle lands on the same pose),
-    two landmarks 0.6 m apart with the given radii, each seen 3 times."""
-    config = dataclasses.replace(EDGE, proposal="motion", association_window=window)
+
+def _radius_case(landmark_radius, window=0, proposal="motion"):
+    """Four particles at the origin, motion noise 0 (every particle lands on the same pose).
+    Slots 2 and 3 hold two landmarks 0.6 m apart, (5, 0) and (5, 0.6), with the given radii
+    (P, 2) and 3 and 9 radii averaged; slots 0 and 1 hold far trees (radius 0.4 and 0.1, the
+    other way round), so a window that gathered the wrong slots' radii would be caught."""
+    config = dataclasses.replace(EDGE, proposal=proposal, association_window=window,
+                                 match_pose_uncertainty=proposal != "motion")
     filt = make_filter(config)
-    state = state_with_map(filt, [[5.0, 0.0], [5.0, 0.6]])
+    state = state_with_map(filt, [[-30.0, 0.0], [0.0, -30.0], [5.0, 0.0], [5.0, 0.6]])
     p = state.particles
+    radius = np.concatenate([np.tile([0.4, 0.1], (4, 1)), np.asarray(landmark_radius)], 1)
     state = state._replace(particles=p._replace(
-        landmark_radius=p.landmark_radius.at[:, :2].set(jnp.asarray(landmark_radius, F32))))
+        landmark_radius=jnp.asarray(radius, F32),
+        radius_count=jnp.asarray(np.tile([3, 9, 3, 9], (4, 1)), jnp.int32)))
     return filt, state
 
 
-@pytest.mark.parametrize("window", [0, 2])
-def test_radius_picks_the_trunk_of_matching_thickness(window):
-    # The observation is 0.2 m from the thin landmark (slot 0) and 0.4 m from the thick one
-    # (slot 1), and measures a thick trunk. By position alone it goes to slot 0; with the
-    # radius (std 0.05 m, a 0.3 m disagreement = 6 sigma) it goes to slot 1. Window 2 < M = 4
-    # takes the association-window path (radii gathered with the window's landmarks).
-    zero = (0.0, 0.0, 0.0)
-    filt, state = _radius_case([[0.1, 0.4]] * 4, window)
-    z = jnp.asarray([[5.0, np.arctan2(0.2, 5.0)], [0.0, 0.0], [0.0, 0.0]], F32)
-    obs = make_observations(z, valid=jnp.asarray([True, False, False]),
-                            radius=jnp.asarray([0.4, 0.0, 0.0], F32))
+def _one_observation(z, radius):
+    return make_observations(jnp.asarray([z, [0.0, 0.0], [0.0, 0.0]], F32),
+                             valid=jnp.asarray([True, False, False]),
+                             radius=jnp.asarray([radius, 0.0, 0.0], F32))
+
+
+@pytest.mark.parametrize("window,proposal", [(0, "motion"), (2, "motion"),
+                                             (2, "observation")])
+def test_radius_picks_the_trunk_of_matching_thickness(window, proposal):
+    # The observation is 0.2 m from the thin landmark (slot 2) and 0.4 m from the thick one
+    # (slot 3), and measures a thick trunk (0.4 m). Position alone: d2 ~ 0.44 (slot 2) vs
+    # ~1.8 (slot 3), so slot 2. Radius std 0.12: d_r2 = 0.09 / (0.0144 (1 + 1/3)) = 4.7 for
+    # slot 2, 0 for slot 3, both inside the gate of 25: the ranking flips to slot 3. Radius std
+    # 0.05: d_r2 = 27 puts slot 2 outside the gate. Window 2 < M = 4 takes the
+    # association-window path; the observation proposal (with pose-uncertainty matching, as
+    # on Victoria Park) matches at the motion prediction.
+    filt, state = _radius_case([[0.1, 0.4]] * 4, window, proposal)
+    obs = _one_observation([5.0, np.arctan2(0.2, 5.0)], 0.4)
     step = jax.jit(filt.step)
-    for sigma, slot in ((0.0, 0), (0.05, 1)):
-        params = default_params(rot1_noise=zero, trans_noise=zero, rot2_noise=zero,
-                                range_noise=(0.0, 0.3), bearing_noise=(0.0, 0.06),
-                                radius_noise=sigma, ess_threshold=0.0)
+    for sigma, slot in ((0.0, 2), (0.12, 3), (0.05, 3)):
+        params = default_params(**ZERO_MOTION, range_noise=(0.0, 0.3),
+                                bearing_noise=(0.0, 0.06), radius_noise=sigma,
+                                ess_threshold=0.0)
         _, info = step(jax.random.key(3), state, params, jnp.zeros(3, F32), obs)
-        np.testing.assert_array_equal(np.asarray(info.match)[:, 0], slot)
+        np.testing.assert_array_equal(np.asarray(info.match)[:, 0], slot, err_msg=str(sigma))
+
+
+def test_radius_past_the_gate_starts_a_new_landmark():
+    # One thin landmark (slot 2, 0.1 m) and a thick trunk seen right on it: matched on position
+    # alone, a new landmark once the radius (std 0.05: d_r2 = 27 > 25) is used.
+    filt, state = _radius_case([[0.1, 0.4]] * 4)
+    state = state._replace(particles=state.particles._replace(
+        active=state.particles.active.at[:, 3].set(False)))
+    obs = _one_observation([5.0, 0.0], 0.4)
+    for sigma, match, landmarks in ((0.0, 2, 3), (0.05, -1, 4)):
+        params = default_params(**ZERO_MOTION, range_noise=(0.0, 0.3),
+                                bearing_noise=(0.0, 0.06), radius_noise=sigma)
+        _, info = jax.jit(filt.step)(jax.random.key(5), state, params, jnp.zeros(3, F32), obs)
+        np.testing.assert_array_equal(np.asarray(info.match)[:, 0], match)
+        np.testing.assert_array_equal(np.asarray(info.num_landmarks), landmarks)
 
 
 def test_radius_weight_is_the_gaussian_factor():
     # Same pose and map in every particle except the matched landmark's radius: the log
     # weights then differ by exactly -d_r2 / 2, d_r2 = (r - r_bar)^2 / (sigma^2 (1 + 1/n)),
-    # n = 3 updates. float32 weights: 1e-4 absolute on differences of order 1.
-    zero = (0.0, 0.0, 0.0)
+    # n = 3 radii. float32 log weights of order 1: 1e-5 absolute.
     radii = np.array([0.30, 0.35, 0.40, 0.20])
     filt, state = _radius_case(np.stack([radii, np.full(4, 0.5)], 1))
-    z = jnp.asarray([[5.0, 0.0], [0.0, 0.0], [0.0, 0.0]], F32)
-    obs = make_observations(z, valid=jnp.asarray([True, False, False]),
-                            radius=jnp.asarray([0.3, 0.0, 0.0], F32))
-    params = default_params(rot1_noise=zero, trans_noise=zero, rot2_noise=zero,
-                            range_noise=(0.0, 0.1), bearing_noise=(0.0, 0.05),
+    obs = _one_observation([5.0, 0.0], 0.3)
+    params = default_params(**ZERO_MOTION, range_noise=(0.0, 0.1), bearing_noise=(0.0, 0.05),
                             radius_noise=0.05, association_gate=100.0, ess_threshold=0.0)
-    new_state, info = jax.jit(filt.step)(jax.random.key(4), state, params, jnp.zeros(3, F32), obs)
-    np.testing.assert_array_equal(np.asarray(info.match)[:, 0], 0)
+    new_state, info = jax.jit(filt.step)(jax.random.key(4), state, params, jnp.zeros(3, F32),
+                                         obs)
+    np.testing.assert_array_equal(np.asarray(info.match)[:, 0], 2)
     log_weight = np.asarray(new_state.log_weight, np.float64)
     expected = -0.5 * (0.3 - radii) ** 2 / (0.05**2 * (1 + 1 / 3))
-    np.testing.assert_allclose(log_weight - log_weight[0], expected - expected[0], atol=1e-4)
+    np.testing.assert_allclose(log_weight - log_weight[0], expected - expected[0], atol=1e-5)
+
+
+def test_unknown_radii_leave_the_step_as_without_radius():
+    # radius_noise > 0 but every radius unknown (0, or a negative or NaN one, which the step
+    # treats as unknown): the step equals the one with radius_noise = 0, leaf for leaf.
+    filt, state = _radius_case(np.zeros((4, 2)))
+    state = state._replace(particles=state.particles._replace(  # free slots 0, 1 for births
+        active=state.particles.active.at[:, :2].set(False)))
+    z = [5.0, np.arctan2(0.2, 5.0)]
+    obs = make_observations(jnp.asarray([z, [9.0, 1.0], [7.0, -1.0]], F32),
+                            radius=jnp.asarray([0.0, -0.3, np.nan], F32))
+    step = jax.jit(filt.step)
+    off = step(jax.random.key(6), state, default_params(), CONTROL, obs)
+    on = step(jax.random.key(6), state, default_params(radius_noise=0.05), CONTROL, obs)
+    for got, want in zip(jax.tree.leaves(on), jax.tree.leaves(off)):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    # A landmark born from such rows has no radius and no radius count.
+    born = np.asarray(on[0].particles.active) & ~np.asarray(state.particles.active)
+    assert born.any()
+    assert np.all(np.asarray(on[0].particles.landmark_radius)[born] == 0.0)
+    assert np.all(np.asarray(on[0].particles.radius_count)[born] == 0)
+
+
+def test_radius_mean_counts_only_measured_radii():
+    # A landmark born without a radius and matched once without one, then twice with radii
+    # 0.2 and 0.3: its radius is their mean 0.25 over radius_count = 2, while it has 4 updates.
+    filt, state = _radius_case(np.zeros((4, 2)))
+    state = state._replace(particles=state.particles._replace(
+        active=state.particles.active.at[:, 2:].set(False)))
+    step = jax.jit(filt.step)
+    params = default_params(**ZERO_MOTION, radius_noise=0.05)
+    for t, radius in enumerate([0.0, 0.0, 0.2, 0.3]):
+        state, _ = step(jax.random.key(t), state, params, jnp.zeros(3, F32),
+                        _one_observation([5.0, 0.0], radius))
+    slot = 2  # the first free slot
+    p = state.particles
+    assert bool(np.all(np.asarray(p.active)[:, slot]))
+    np.testing.assert_array_equal(np.asarray(p.observation_count)[:, slot], 4)
+    np.testing.assert_array_equal(np.asarray(p.radius_count)[:, slot], 2)
+    np.testing.assert_allclose(np.asarray(p.landmark_radius)[:, slot], 0.25, atol=1e-6)

@@ -161,6 +161,7 @@ def test_gather_applies_to_every_leaf():
         active=jnp.asarray(rng.random((num, slots)) < 0.5),
         existence=jnp.asarray(rng.normal(size=(num, slots))),
         observation_count=jnp.asarray(rng.integers(0, 9, (num, slots)), jnp.int32),
+        radius_count=jnp.asarray(rng.integers(0, 9, (num, slots)), jnp.int32),
     )
     indices = jnp.asarray([4, 4, 0, 2, 1], jnp.int32)
     out = jax.jit(resampling.gather)(particles, indices)

@@ -183,6 +183,10 @@ def _check_observations(source: str, log: RobotLog, steps: int) -> dict:
         radius = _as_float(source, "obs_radius", log.obs_radius)
         _check_shape(source, "obs_radius", radius, obs_z.shape[:2])
         _check_finite(source, "obs_radius", radius)
+        if (radius < 0).any():
+            t, k = (int(i) for i in np.argwhere(radius < 0)[0])
+            _fail(source, f"'obs_radius' has a negative radius {float(radius[t, k])!r} at "
+                          f"(t={t}, k={k}); expected radius >= 0 [m] (0 = unknown)")
         fields["obs_radius"] = radius
     return fields
 

@@ -201,6 +201,9 @@ INVALID = {
                              r"\(t=2, k=1\); expected range >= 0"),
     "obs_radius mismatched": (_set("obs_radius", lambda a: np.zeros((T, K + 2))),
                               r"'obs_radius' has shape \(5, 5\); expected \(5, 3\)"),
+    "obs_radius negative": (_poke("obs_radius", (4, 2), -0.1),
+                            r"'obs_radius' has a negative radius -0.1 at \(t=4, k=2\); "
+                            r"expected radius >= 0 \[m\] \(0 = unknown\)"),
     "obs_radius without obs_z": (_drop("obs_z", "obs_valid"),
                                  r"'obs_radius' is present without 'obs_z'"),
     "no observations": (_drop("obs_z", "obs_valid", "obs_radius", "scan_ranges", "scan_angles"),

@@ -240,10 +240,9 @@ def test_full_run_first_half(park):
 
 @pytest.mark.slow
 @pytest.mark.xfail(reason="issue 7 accuracy target: whole log, P=100, seed 0 is one of the bad "
-                          "runs: RMSE 19.2 m online, 17.4 m smoothed (target 2 m; 100 runs: "
-                          "median 4.05 m online, 2.02 m smoothed, 45 runs <= 2 m); 188 trees "
-                          "(target 130-200: met); 18-20 s filter + 9-10 s smoothing (target "
-                          "30 s: at the limit, 27-30 s measured)",
+                          "runs: RMSE 8.1 m online, 7.9 m smoothed (target 2 m; see "
+                          "docs/results.md for the 100-run figures); 184 trees (target "
+                          "130-200: met); 19-20 s filter + 5 s smoothing (target 30 s: met)",
                    strict=False)
 @pytest.mark.skipif(not HAVE_DATA, reason=SKIP_REASON)
 def test_full_run_targets(park):
