@@ -150,9 +150,11 @@ class Params(NamedTuple):
         the radius joins the association and the weight (``ekf.radius_distance_sq``): pairs
         where both radii are known then have a third degree of freedom, so raise
         ``association_gate`` to match (chi-square 3 dof: 99.9 % 16.27 where 2 dof give 13.82;
-        the default 25 becomes ~28). The same gate applies to pairs with an unknown radius
-        (position only) and to the airlock's position tests, which it makes a little looser.
-        Default 0: radii are only averaged into ``Particles.landmark_radius``.
+        the default 25 becomes ~28); as the radius keeps wrong neighbours out, a wider gate
+        may pay (Victoria Park: 13.8 without radii, 25 with them; ``victoria_park_slam``).
+        The same gate applies to pairs with an unknown radius (position only) and to the
+        airlock's position tests. Default 0: radii are only averaged into
+        ``Particles.landmark_radius``.
     Sensor:
       max_range / min_range: visibility limits [m].
       miss_range: landmarks predicted farther than this [m] are not counted as missed when

@@ -287,9 +287,9 @@ def test_run_on_a_log_with_trunk_radii(tmp_path, monkeypatch, capsys):
     radius = np.broadcast_to([0.1, 0.2, 0.3, 0.15, 0.25, 0.35], log.obs_valid.shape)
     status, values = _run_on_straight_log(
         tmp_path, monkeypatch, capsys, "--set", "params.radius_noise=0.07", "--set",
-        "params.association_gate=16.27", log=log._replace(obs_radius=np.array(radius)))
+        "params.association_gate=25", log=log._replace(obs_radius=np.array(radius)))
     assert status == 0
-    assert seen == {"radius_noise": pytest.approx(0.07), "gate": pytest.approx(16.27)}
+    assert seen == {"radius_noise": pytest.approx(0.07), "gate": pytest.approx(25.0)}
     assert float(values["ate_rmse"]) < 0.2
     assert int(float(values["num_landmarks"])) >= 5
 
