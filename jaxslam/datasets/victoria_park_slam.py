@@ -125,10 +125,11 @@ PARAM_DEFAULTS = dict(
     #   radius std 0.07, gate 16.27:                           3.25 -> 1.68 / 2.58 / 7.2 m (12)
     #   radius std 0.07, gate 25:                              3.09 -> 1.57 / 1.59 / 1.67 m (16)
     # With the tight gate the radius refused the wrong-but-near matches that had kept a
-    # drifted stretch roughly tied to the map, and 3 of 16 runs (32 of the 100 Monte Carlo
-    # runs) then missed the closure at scans ~6,250-6,750 and ended 5-13 m off. The wider gate
-    # lets the right tree in when the pose has drifted, and the radius keeps the wrong
-    # neighbours out.
+    # drifted stretch roughly tied to the map: 3 of the 16 runs missed the closure at scans
+    # ~6,250-6,750 (5-7 m RMSE), and 32 of the 100 Monte Carlo runs (keys fold_in(key(1), r))
+    # came out at 5-11 m. The wider gate lets the right tree in when the pose has drifted,
+    # and the radius keeps the wrong neighbours out. The 100 runs with gate 25: smoothed
+    # median 1.60 m, 98 at or under 2 m (docs/results.md).
     radius_noise=0.07,
     association_gate=25.0,
     airlock_sigmas=float(np.sqrt(13.8)),
@@ -436,8 +437,9 @@ def victoria_park_config(num_particles: int = 100, max_landmarks: int = 320,
     median, with the constant steering bias and 30 m range of the time: at 1/4 of the first
     motion noise, 6.8 m with this proposal and 7.9 m with the motion proposal; at
     ``MOTION_NOISE`` (1/8) with it, 5.8 m. With today's defaults (bias profile, 45 m / 30 m
-    ranges): 3.6 m online, 2.04 m smoothed (100 other runs: 4.05 m online, 2.02 m smoothed).
-    Any field can be overridden."""
+    ranges), before the trunk radius: 3.6 m online, 2.04 m smoothed (100 other runs: 4.05 m
+    online, 2.02 m smoothed); with it (``PARAM_DEFAULTS``): 3.1 m online, 1.57 m smoothed
+    (100 other runs: 2.63 m online, 1.60 m smoothed). Any field can be overridden."""
     fields.setdefault("association_window", 48)
     fields.setdefault("proposal", "observation")
     fields.setdefault("match_pose_uncertainty", True)
@@ -528,7 +530,7 @@ SMOOTH_CALIBRATE_ROUNDS = 1
 # solve took ~7 s instead of ~10-14 s with a second job on the machine.
 SMOOTH_TOL = 1e-4
 # Loop closures revised in the smoother (``run_victoria_park(smooth_visit_gap=100)``, off by
-# default): after the merged solve a landmark unseen for 100 scans (~20 s) starts a new visit,
+# default; measured before the trunk radius joined association, with the smoother's tol 1e-6): after the merged solve a landmark unseen for 100 scans (~20 s) starts a new visit,
 # and visits are tied by links of std 0.2 m whose Geman-McClure weight halves at 0.5 m.
 # Tuned on the 16 runs above (median / mean / max 2.04 / 2.37 / 6.64 m -> 2.16 / 2.07 /
 # 3.02 m), it did not carry over to the 100 Monte Carlo runs (keys fold_in(key(1), r)):
@@ -715,8 +717,8 @@ def run_victoria_park_batch(key, data: VictoriaPark, num_runs: int,
     R * P stays within a few thousand. With ``smooth`` the filter records every particle's
     lineage, so runs go ``chunk`` at a time through the compiled call (64 MB a run for the
     whole log at P=100), and each run's best history is then smoothed on the host (a tqdm
-    bar when ``progress``; ~10 s a run for the whole log on this CPU: 9.6-10.3 s
-    measured alone, 9.8 s a run over the 100-run study).
+    bar when ``progress``; ~5 s a run for the whole log on this CPU: 5.3 s measured alone
+    for the seed-0 run, 5.0 s a run over the 100-run study).
     """
     if not isinstance(num_runs, (int, np.integer)) or num_runs < 1:
         raise ValueError(f"num_runs={num_runs!r} is invalid; expected a positive integer")
