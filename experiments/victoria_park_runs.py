@@ -7,6 +7,8 @@ Each run r uses key fold_in(PRNGKey(0), r), so two settings see the same keys. S
     .venv/bin/python experiments/victoria_park_runs.py --runs 8 --steering-bias 0.0052 \\
         --detector max_missing_beams=0 --params "bearing_noise=(0.0, 0.02)" \\
         --config proposal='observation' match_pose_uncertainty=True
+    .venv/bin/python experiments/victoria_park_runs.py --runs 16 --smooth \
+        --params radius_noise=0.0 association_gate=13.8
 
 Prints one line: RMSE [m] of each run, their median, the final tree counts and the run time.
 The comparisons quoted in ``victoria_park_slam`` and docs/results.md were made this way.
@@ -58,6 +60,9 @@ def parse_args():
     parser.add_argument("--config", nargs="*", default=[], help="FilterConfig fields")
     parser.add_argument("--params", nargs="*", default=[], help="Params fields")
     parser.add_argument("--detector", nargs="*", default=[], help="detect_trunks settings")
+    parser.add_argument("--smooth", action="store_true",
+                        help="also smooth each run's best history (20 runs vmapped at a time) "
+                             "and print its RMSE")
     return parser.parse_args()
 
 
@@ -73,7 +78,13 @@ def main():
     batch = vps.run_victoria_park_batch(jax.random.key(0), data, args.runs, config,
                                         params=params, observations=obs,
                                         num_scans=args.scans,
-                                        steering_bias=args.steering_bias)
+                                        steering_bias=args.steering_bias,
+                                        smooth=args.smooth)
+    if args.smooth:
+        smoothed = batch.smoothed_rmse
+        print(f"smoothed rmse [m] {np.round(smoothed, 2).tolist()} median "
+              f"{np.median(smoothed):.2f} mean {smoothed.mean():.2f} max {smoothed.max():.2f} "
+              f"<= 2 m: {int(np.sum(smoothed <= 2.0))} | smoothing {batch.smooth_s:.0f} s")
     print(f"rmse [m] {np.round(batch.rmse, 1).tolist()} median {np.median(batch.rmse):.2f} | "
           f"trees {batch.num_trees.tolist()} | compile {batch.compile_s:.1f} s, "
           f"run {batch.run_s:.0f} s | P={args.particles} scans={args.scans or 'all'} "
