@@ -30,6 +30,7 @@ from jaxslam import association, ekf, landmarks, proposal, resampling
 from jaxslam.geometry import wrap_angle
 from jaxslam.motion import predict_pose, sample_motion
 from jaxslam.types import FilterConfig, FilterState, Observations, Params, Particles
+from jaxslam.validation import cast_floating, check_controls, check_params
 
 
 class StepInfo(NamedTuple):
@@ -597,13 +598,19 @@ def run_filter(config: FilterConfig | Filter, key, params: Params, controls,
         ``trace.lineage`` (4 T P K + 16 T P bytes), for ``smoothing.smooth_lineage``.
     Returns:
       (final ``FilterState``, ``Trace`` with leading axis T).
+    Raises:
+      ValueError: bad shapes, a non-finite control row, or ``Params`` that
+        ``validation.check_params`` refuses. Float leaves of ``params`` and ``observations``
+        are cast to the controls' dtype (the filter's dtype).
     """
     if isinstance(config, Filter):
         config = config.config
     _check_config(config)
     controls = jnp.asarray(controls)
-    if controls.ndim != 2 or controls.shape[1] != 3:
-        raise ValueError(f"controls must have shape (T, 3); got {controls.shape}")
+    check_controls(controls)  # shape (T, 3), float, finite (first bad row named)
+    check_params(params)  # concrete leaves only; tracers are skipped
+    params = cast_floating(params, controls.dtype)  # one dtype: the controls'
+    observations = cast_floating(observations, controls.dtype)
     if observations.z.shape[:1] != controls.shape[:1] or observations.z.shape[1:] != (
             config.max_obs, 2):
         raise ValueError(

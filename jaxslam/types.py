@@ -226,6 +226,9 @@ def default_params(config: FilterConfig | None = None, dtype=jnp.float32, **over
       config: the filter config (unused today; kept so defaults may depend on it).
       dtype: float dtype of every leaf.
       **overrides: any ``Params`` field, e.g. ``max_range=30.0``.
+    Raises:
+      ValueError: an unknown field, or a value ``validation.check_params`` refuses (wrong
+        shape, e.g. a scalar for a 3-vector noise field, NaN, out of range), naming it.
     """
     del config
     gate = 25.0
@@ -268,7 +271,10 @@ def default_params(config: FilterConfig | None = None, dtype=jnp.float32, **over
             f"expected fields of Params: {sorted(values)}"
         )
     values.update(overrides)
-    return Params(**{k: jnp.asarray(v, dtype=dtype) for k, v in values.items()})
+    params = Params(**{k: jnp.asarray(v, dtype=dtype) for k, v in values.items()})
+    from jaxslam.validation import check_params  # lazy: validation imports this module
+    check_params(params, where="default_params", allow_batch=False)
+    return params
 
 
 class Particles(NamedTuple):

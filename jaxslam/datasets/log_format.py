@@ -258,23 +258,77 @@ def save_log(path, log: RobotLog, compress: bool = False) -> None:
     arrays = {name: value for name, value in log._asdict().items() if value is not None}
     arrays["motion_model"] = np.asarray(log.motion_model)
     arrays["format_version"] = np.asarray(log.format_version, np.int64)
-    (np.savez_compressed if compress else np.savez)(path, **arrays)
+    (np.savez_compressed if compress else np.savez)(path, allow_pickle=False, **arrays)
+
+
+_EXPECTED_FILE = ("expected a .npz archive written by numpy.savez / numpy.savez_compressed or "
+                  "jaxslam.datasets.save_log (docs/log_format.md)")
+
+
+def _read_npz(source: str) -> dict:
+    """Every array of the .npz at ``source``; LogFormatError for anything unreadable.
+
+    Pickle is never enabled (``allow_pickle=False``): object arrays are refused, by key.
+    ``meta_*`` keys are listed but not read (``None``): they may hold anything.
+    """
+    if not os.path.exists(source):
+        _fail(source, f"no such file; {_EXPECTED_FILE}")
+    if os.path.isdir(source):
+        _fail(source, f"is a directory, not a file; {_EXPECTED_FILE}")
+    try:
+        with open(source, "rb") as handle:
+            magic = handle.read(6)
+    except OSError as error:
+        raise LogFormatError(f"{source}: cannot open ({error}); {_EXPECTED_FILE}") from error
+    if not magic:
+        _fail(source, f"the file is empty (0 bytes); {_EXPECTED_FILE}")
+    if magic.startswith(b"\x93NUMPY"):
+        _fail(source, "cannot read as a .npz archive: it is a single .npy array (numpy.save), "
+                      f"not an archive of named arrays; {_EXPECTED_FILE}")
+    if not magic.startswith(b"PK"):
+        _fail(source, f"cannot read as a .npz archive: it is not a zip file (starts with "
+                      f"{magic!r}; a .npz starts with b'PK'); {_EXPECTED_FILE}")
+    try:
+        loaded = np.load(source, allow_pickle=False)
+    except Exception as error:  # noqa: BLE001 - any failure to parse means "not a .npz"
+        raise LogFormatError(f"{source}: cannot read as a .npz archive, it is truncated or "
+                             f"corrupt ({type(error).__name__}: {error}); "
+                             f"{_EXPECTED_FILE}") from error
+    if not isinstance(loaded, np.lib.npyio.NpzFile):  # the magic said zip; be safe anyway
+        _fail(source, f"cannot read as a .npz archive (got a {type(loaded).__name__}); "
+                      f"{_EXPECTED_FILE}")
+    arrays = {}
+    with loaded as npz:
+        for name in list(npz.files):
+            if name.startswith(EXTRA_PREFIX):  # user metadata is ignored: never read it
+                arrays[name] = None
+                continue
+            try:
+                arrays[name] = npz[name]
+            except Exception as error:  # noqa: BLE001 - truncated, corrupt or pickled member
+                what = ("an object array that needs pickle, which load_log never enables; "
+                        "store numbers, bools or strings" if "pickle" in str(error)
+                        else "a corrupt or truncated member")
+                raise LogFormatError(
+                    f"{source}: cannot read as a .npz archive: key '{name}' is {what} "
+                    f"({type(error).__name__}: {error}); {_EXPECTED_FILE}") from error
+            if not isinstance(arrays[name], np.ndarray):
+                _fail(source, f"cannot read as a .npz archive: member '{name}' of the zip is "
+                              f"not a .npy array; {_EXPECTED_FILE}")
+    return arrays
 
 
 def load_log(path) -> RobotLog:
     """Read and validate a jaxslam ``.npz`` log.
 
     Raises:
-      LogFormatError: the file is not a readable .npz, a required key is missing, a key is
-        unknown (user metadata must start with ``meta_``), or ``validate_log`` fails.
+      LogFormatError: naming the file: it is missing, empty, truncated or corrupt, not a .npz
+        (e.g. a single .npy array or a pickle), holds an array that needs pickle (never
+        enabled), a required key is missing, a key is unknown (user metadata must start
+        with ``meta_``), or ``validate_log`` fails.
     """
     source = os.fspath(path)
-    try:
-        with np.load(source, allow_pickle=False) as npz:
-            arrays = {name: npz[name] for name in npz.files}
-    except (OSError, ValueError) as error:
-        raise LogFormatError(f"{source}: cannot read as a .npz archive ({error}); expected a "
-                             "file written by numpy.savez / jaxslam save_log") from error
+    arrays = _read_npz(source)
     missing = [name for name in REQUIRED_KEYS if name not in arrays]
     if missing:
         _fail(source, f"missing required key(s) {missing}; expected {list(REQUIRED_KEYS)}")
