@@ -1,4 +1,4 @@
-"""Robot logs: the documented jaxslam ``.npz`` format and the Victoria Park loader."""
+"""Robot logs: the documented jaxslam ``.npz`` format and the Victoria Park and MRCLAM loaders."""
 from jaxslam.datasets.log_format import (
     FORMAT_VERSION,
     VICTORIA_PARK_VEHICLE,
@@ -11,6 +11,15 @@ from jaxslam.datasets.log_format import (
     odometry_path,
     save_log,
     validate_log,
+)
+from jaxslam.datasets.mrclam import (
+    MrclamFileError,
+    MrclamRun,
+    MrclamSteps,
+    load_mrclam,
+    mrclam_log,
+    mrclam_steps,
+    read_mrclam,
 )
 from jaxslam.datasets.victoria_park import (
     GpsError,
