@@ -29,6 +29,11 @@ _PUBLIC = {
     "trace_lineage": "jaxslam.lineage",
     "smooth_lineage": "jaxslam.smoothing",
     "smooth_path": "jaxslam.smoothing",
+    "calibrate_params": "jaxslam.self_calibration",
+    "CalibrationInfo": "jaxslam.self_calibration",
+    "starting_params": "jaxslam.self_calibration",
+    "filter_log": "jaxslam.pipeline",
+    "LogRun": "jaxslam.pipeline",
 }
 
 __all__ = sorted(_PUBLIC) + ["__version__"]

@@ -148,9 +148,9 @@ def cmd_run(args) -> int:
     """One run: of the default scenario (a one-run study), or of a robot log (--data)."""
     if args.data:
         return _run_log(args)
-    if args.smooth or args.visit_gap is not None:
-        raise UsageError("--smooth and --visit-gap apply to a robot log: pass --data "
-                         "FILE.npz too")
+    if args.smooth or args.visit_gap is not None or args.no_calibrate or args.params:
+        raise UsageError("--smooth, --visit-gap, --no-calibrate and --params apply to a robot "
+                         "log: pass --data FILE.npz too")
     config = _load_config(args.config, list(args.set or ())
                           + ["name=\"run\"", "num_runs=1", "chunk_size=1"])
     from jaxslam import plots, studies
@@ -171,46 +171,96 @@ def _print_metrics(values: dict) -> None:
         print(f"{name:<{width}}  {text}")
 
 
-def _run_log(args) -> int:
-    """Filter a jaxslam .npz robot log; print the metrics its ground truth allows."""
-    import numpy as np
-
+def _load_robot_log(path):
     from jaxslam.datasets.log_format import LogFormatError, load_log
 
     try:
-        log = load_log(args.data)
+        log = load_log(path)
         log.observations()
     except LogFormatError as error:
         raise UsageError(str(error)) from error
-    example, values = _filter_log(args, log)
-    _print_metrics(values)
+    return log
+
+
+def _print_calibration(info) -> None:
+    print(f"calibration: {info.verdict} ({info.iterations} iterations)")
+    for name, value in info.values.items():
+        text = (f"{value:.6g}" if isinstance(value, float)
+                else "(" + ", ".join(f"{v:.6g}" for v in value) + ")")
+        print(f"  {name:<24} {text}")
+
+
+def _print_warnings(warnings) -> None:
+    for line in warnings:
+        print(f"WARNING: {line}")
+
+
+def _run_log(args) -> int:
+    """Filter a jaxslam .npz robot log; print the metrics its ground truth allows."""
+    import json
+
+    import numpy as np
+
+    log = _load_robot_log(args.data)
     out = pathlib.Path(args.out) if args.out else pathlib.Path("results") / "run"
     out.mkdir(parents=True, exist_ok=True)
-    np.savez(out / "example_run.npz", **example)
+    example, run = _filter_log(args, log)
+    from jaxslam import pipeline
+
+    if run.calibration is not None:
+        _print_calibration(run.calibration)
+        saved = pipeline.save_params(out / "calibrated_params.toml", run.params,
+                                     comment=f"calibrated from {args.data} by jaxslam run "
+                                     f"({run.calibration.verdict})")
+        print(f"wrote {saved} (reuse it with --params {saved})")
+    _print_metrics(run.metrics)
+    _print_warnings(run.warnings)
+    if log.truth_pose is None:
+        print("(the log has no truth_pose: no trajectory error to report)")
+    np.savez(out / "example_run.npz", allow_pickle=False, **example)
+    (out / "metrics.json").write_text(json.dumps(
+        {"metrics": run.metrics, "warnings": list(run.warnings)}, indent=2) + "\n")
     from jaxslam import plots
 
+    print(f"wrote {out / 'metrics.json'}")
     print(f"wrote {plots.plot_map(example, out / 'map.png', title=f'Map: {args.data}')}")
     return 0
 
 
-def _filter_log(args, log):
-    """Run the filter over a log. Returns (example_run arrays, metrics dict)."""
+def _log_settings(args, log):
+    """(FilterConfig, starting or fixed Params or None, calibrate?) for a log run."""
     import dataclasses
 
-    import jax
-    import numpy as np
-
-    from jaxslam import metrics
-    from jaxslam.filter import estimate, run_filter
+    from jaxslam import pipeline
+    from jaxslam.self_calibration import starting_params
     from jaxslam.types import default_params
 
-    enable_compilation_cache()
     study = _load_config(args.config, args.set)
     obs = log.observations()
     filter_config = dataclasses.replace(study.filter, max_obs=int(obs.z.shape[1]),
                                         motion_model=log.motion_model)
-    params = default_params(filter_config, **dict(study.params))
-    initial = np.zeros(3) if log.initial_pose is None else log.initial_pose
+    params_file = getattr(args, "params", None)
+    calibrate = not getattr(args, "no_calibrate", False) and params_file is None
+    if params_file is not None:
+        try:
+            params = pipeline.load_params(params_file, filter_config)
+        except ValueError as error:
+            raise UsageError(str(error)) from error
+    elif calibrate:
+        params = starting_params(filter_config, **dict(study.params))
+    else:
+        params = default_params(filter_config, **dict(study.params))
+    return study, filter_config, params, calibrate
+
+
+def _filter_log(args, log):
+    """Run the pipeline over a log. Returns (example_run arrays, ``pipeline.LogRun``)."""
+    import jax
+    import numpy as np
+
+    from jaxslam import pipeline
+
+    enable_compilation_cache()
     smooth = bool(getattr(args, "smooth", False))
     visit_gap = getattr(args, "visit_gap", None)
     if visit_gap is not None and not smooth:
@@ -218,47 +268,42 @@ def _filter_log(args, log):
                          "history's landmarks into visits)")
     if visit_gap is not None and visit_gap < 1:
         raise UsageError(f"--visit-gap {visit_gap}: the gap must be at least 1 step")
-    final, trace = run_filter(filter_config, jax.random.PRNGKey(args.seed), params,
-                              np.asarray(log.controls, np.float32), obs,
-                              np.asarray(initial, np.float32), record_lineage=smooth)
-    est = estimate(final)
-    mean_pose = np.asarray(trace.mean_pose, np.float64)
-    values = {"steps": log.num_steps, "num_landmarks": int(np.sum(np.asarray(est.active)))}
+    study, filter_config, params, calibrate = _log_settings(args, log)
+    run = pipeline.filter_log(log, filter_config, params, jax.random.PRNGKey(args.seed),
+                              calibrate=calibrate, smooth=smooth, visit_gap=visit_gap,
+                              map_match_threshold=study.map_match_threshold,
+                              progress=print)
+    est = run.estimate
     truth = np.zeros((0, 3)) if log.truth_pose is None else np.asarray(log.truth_pose)
-    smoothed = None
-    if smooth:
-        from jaxslam import lineage, smoothing
-        from jaxslam.motion import control_to_odometry
-
-        history = lineage.trace_lineage(trace.lineage, est.best_particle)
-        odometry = control_to_odometry(jax.numpy.asarray(log.controls, np.float32), params,
-                                       log.motion_model)
-        smoothed = smoothing.smooth_lineage(np.asarray(initial, np.float64),
-                                            jax.tree.map(np.asarray, history),
-                                            np.asarray(odometry), np.asarray(obs.z),
-                                            params, visit_gap=visit_gap).path
-    if log.truth_pose is not None:
-        values["final_pose_error"] = float(np.hypot(*(mean_pose[-1, :2] - truth[-1, :2])))
-        values["ate_rmse"] = float(metrics.ate_rmse(mean_pose, truth))
-        values["ate_rmse_aligned"] = float(metrics.ate_rmse(mean_pose, truth, align=True))
-        if smoothed is not None:
-            values["smoothed_ate_rmse"] = float(metrics.ate_rmse(smoothed, truth))
-            values["smoothed_ate_rmse_aligned"] = float(metrics.ate_rmse(smoothed, truth,
-                                                                         align=True))
     trees = np.zeros((0, 2)) if log.truth_landmarks is None else np.asarray(log.truth_landmarks)
-    if log.truth_landmarks is not None and len(trees):
-        scores = metrics.map_metrics(est.landmark_mean, est.active, trees,
-                                     np.ones(len(trees), bool), study.map_match_threshold)
-        values.update({name: float(value) for name, value in scores._asdict().items()})
-    if log.truth_pose is None:
-        print("(the log has no truth_pose: no trajectory error to report)")
-    example = dict(truth_pose=truth, mean_pose=mean_pose,
+    example = dict(truth_pose=truth, mean_pose=run.mean_pose,
                    landmark_mean=np.asarray(est.landmark_mean),
                    landmark_cov=np.asarray(est.landmark_cov), active=np.asarray(est.active),
                    tree_centres=trees, tree_radii=np.zeros(len(trees)))  # radii unknown: markers only
-    if smoothed is not None:
-        example["smoothed_pose"] = smoothed
-    return example, values
+    if run.smoothed_pose is not None:
+        example["smoothed_pose"] = run.smoothed_pose
+    return example, run
+
+
+def cmd_calibrate(args) -> int:
+    """Calibrate the filter's settings from a log alone and write them as TOML."""
+    import jax
+
+    from jaxslam import pipeline
+    from jaxslam.self_calibration import calibrate_params
+
+    enable_compilation_cache()
+    log = _load_robot_log(args.data)
+    _, filter_config, params, _ = _log_settings(args, log)
+    params, info = calibrate_params(
+        filter_config, jax.random.PRNGKey(args.seed), log.controls.astype("float32"),
+        log.observations(), log.initial_pose, params, progress=print)
+    _print_calibration(info)
+    _print_warnings(info.warnings)
+    saved = pipeline.save_params(args.out, params, comment=f"calibrated from {args.data} by "
+                                 f"jaxslam calibrate ({info.verdict})")
+    print(f"wrote {saved} (use it with: jaxslam run --data {args.data} --params {saved})")
+    return 0
 
 
 def cmd_bench(args) -> int:
@@ -373,8 +418,25 @@ def build_parser() -> argparse.ArgumentParser:
                           "than STEPS steps, tied by robust links, so the smoother can drop "
                           "wrong loop closures (smooth_path(visit_gap=...); tried on "
                           "Victoria Park with 100 scans, about 20 s; see docs/results.md)")
+    run.add_argument("--no-calibrate", action="store_true",
+                     help="with --data: run with the config's params as given (default: "
+                          "calibrate them from the log first and save calibrated_params.toml)")
+    run.add_argument("--params", metavar="FILE",
+                     help="with --data: a params TOML file (from `jaxslam calibrate` or a "
+                          "previous run's calibrated_params.toml), used as it is")
     _add_common(run, config_required=False)
     run.set_defaults(func=cmd_run)
+
+    calibrate = sub.add_parser("calibrate", help="estimate the filter's noise and sensor "
+                                                 "settings from a robot log alone; write TOML")
+    calibrate.add_argument("--data", required=True, help="a robot log in the jaxslam .npz "
+                                                          "format")
+    calibrate.add_argument("--out", required=True, help="params TOML file to write")
+    calibrate.add_argument("--config", help="study TOML whose filter/params to start from")
+    calibrate.add_argument("--seed", type=int, default=0, help="PRNG seed (default 0)")
+    calibrate.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                           help="override a config entry (repeatable)")
+    calibrate.set_defaults(func=cmd_calibrate)
 
     study = sub.add_parser("study", help="a Monte Carlo study from a TOML file")
     _add_common(study, config_required=True)

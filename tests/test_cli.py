@@ -233,7 +233,8 @@ def test_run_on_a_log(tmp_path, monkeypatch, capsys):
 
 
 def test_run_on_a_log_with_smoothing(tmp_path, monkeypatch, capsys):
-    status, values = _run_on_straight_log(tmp_path, monkeypatch, capsys, "--smooth")
+    status, values = _run_on_straight_log(tmp_path, monkeypatch, capsys, "--smooth",
+                                          "--no-calibrate")
     assert status == 0
     # Exact odometry and noise-free observations: the smoothed history sits on the truth
     # (to the few cm the filter's sampled poses leave) like the online estimate.
@@ -256,7 +257,7 @@ def test_run_on_a_log_with_visit_links(tmp_path, monkeypatch, capsys):
 
     monkeypatch.setattr(smoothing, "smooth_lineage", spy)
     status, values = _run_on_straight_log(tmp_path, monkeypatch, capsys, "--smooth",
-                                          "--visit-gap", "3")
+                                          "--visit-gap", "3", "--no-calibrate")
     assert status == 0 and seen["visit_gap"] == 3  # the option reaches the smoother
     # The straight log's associations are right: the smoothed history stays within the same
     # few cm of the truth as without links.
@@ -272,22 +273,23 @@ def test_run_on_a_log_with_trunk_radii(tmp_path, monkeypatch, capsys):
     # docs/log_format.md: a log's obs_radius joins association when params.radius_noise is
     # set. The setting must reach the filter, and with radii that agree (each tree its own
     # constant radius) the run stays within the same few cm as without them.
-    import jaxslam.filter
+    import jaxslam.pipeline
 
     seen = {}
-    run_filter = jaxslam.filter.run_filter
+    run_filter = jaxslam.pipeline.run_filter
 
     def spy(config, key, params, *args, **options):
         seen["radius_noise"] = float(params.radius_noise)
         seen["gate"] = float(params.association_gate)
         return run_filter(config, key, params, *args, **options)
 
-    monkeypatch.setattr(jaxslam.filter, "run_filter", spy)
+    monkeypatch.setattr(jaxslam.pipeline, "run_filter", spy)
     log = _straight_log()
     radius = np.broadcast_to([0.1, 0.2, 0.3, 0.15, 0.25, 0.35], log.obs_valid.shape)
     status, values = _run_on_straight_log(
         tmp_path, monkeypatch, capsys, "--set", "params.radius_noise=0.07", "--set",
-        "params.association_gate=25", log=log._replace(obs_radius=np.array(radius)))
+        "params.association_gate=25", "--no-calibrate",
+        log=log._replace(obs_radius=np.array(radius)))
     assert status == 0
     assert seen == {"radius_noise": pytest.approx(0.07), "gate": pytest.approx(25.0)}
     assert float(values["ate_rmse"]) < 0.2
@@ -341,3 +343,117 @@ def test_run_default_scenario(tmp_path, monkeypatch, capsys):
                   if len(line.split()) == 2)
     assert 0.0 <= float(values["final_pose_error"]) < 5.0
     assert (tmp_path / "run" / "map.png").stat().st_size > 10_000
+
+
+def _noisy_log(steps=150, range_std=0.05, seed=3):
+    """A user's own log: a loop past 24 trees, 5 cm range noise, noisy odometry, truth."""
+    from jaxslam.datasets.log_format import RobotLog
+
+    rng = np.random.default_rng(seed)
+    angle = np.linspace(0.0, 2 * np.pi, 24, endpoint=False)
+    trees = np.stack([(10 + 4 * (np.arange(24) % 2)) * np.cos(angle),
+                      (10 + 4 * (np.arange(24) % 2)) * np.sin(angle)], 1)
+    phi = 2 * np.pi * np.arange(steps + 1) / steps
+    truth = np.stack([12 * np.cos(phi), 12 * np.sin(phi), phi + np.pi / 2], 1)
+    truth[:, 2] = (truth[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    trans = np.full(steps, 2 * 12 * np.sin(np.pi / steps))
+    turn = np.full(steps, 2 * np.pi / steps)
+    controls = np.stack([0.5 * turn + rng.normal(0, 0.01, steps),
+                         trans * (1 + rng.normal(0, 0.02, steps)),
+                         0.5 * turn + rng.normal(0, 0.01, steps)], 1)
+    offset = trees[None] - truth[1:, None, :2]
+    distance = np.hypot(offset[..., 0], offset[..., 1])
+    bearing = np.arctan2(offset[..., 1], offset[..., 0]) - truth[1:, None, 2]
+    order = np.argsort(distance, axis=1)[:, :8]
+    d = np.take_along_axis(distance, order, 1)
+    b = np.take_along_axis(bearing, order, 1)
+    z = np.stack([d + rng.normal(0, range_std, d.shape),
+                  (b + rng.normal(0, 0.005, b.shape) + np.pi) % (2 * np.pi) - np.pi], -1)
+    return RobotLog(time=np.arange(steps, dtype=float), motion_model="odometry",
+                    controls=controls, obs_z=z, obs_valid=d < 8.0, truth_pose=truth[1:],
+                    truth_landmarks=trees, initial_pose=truth[0])
+
+
+def _run_noisy(tmp_path, monkeypatch, capsys, *extra):
+    from jaxslam.datasets.log_format import save_log
+
+    monkeypatch.setenv("JAXSLAM_CACHE_DIR", str(tmp_path / "cache"))
+    save_log(tmp_path / "noisy.npz", _noisy_log())
+    try:
+        status = cli.main(["run", "--data", str(tmp_path / "noisy.npz"), "--out",
+                           str(tmp_path / "out"), "--set", "filter.num_particles=16",
+                           "--set", "filter.max_landmarks=48", *extra])
+    finally:
+        _reset_cache_config()
+    out = capsys.readouterr().out
+    return status, out, dict(line.split() for line in out.splitlines()
+                             if len(line.split()) == 2)
+
+
+def test_run_calibrates_a_user_log_by_default(tmp_path, monkeypatch, capsys):
+    # The log's noise (5 cm range, 0.005 rad bearing, 1 cm / 2 % odometry) is given nowhere.
+    status, out, calibrated = _run_noisy(tmp_path, monkeypatch, capsys)
+    assert status == 0
+    assert "calibration:" in out and "range_noise" in out
+    saved = tmp_path / "out" / "calibrated_params.toml"
+    assert saved.is_file() and (tmp_path / "out" / "metrics.json").is_file()
+    # The same filter given the true noise by hand.
+    status, _, given = _run_noisy(
+        tmp_path, monkeypatch, capsys, "--no-calibrate", "--set", "params.range_noise=[0, 0.05]",
+        "--set", "params.bearing_noise=[0, 0.005]", "--set", "params.rot1_noise=[0, 0, 0.01]",
+        "--set", "params.rot2_noise=[0, 0, 0.01]", "--set", "params.trans_noise=[0.02, 0, 0]")
+    assert status == 0
+    # Acceptance of the calibration: within 1.5x of the result with the true noise (plus
+    # 2 cm: both are a few cm, where one particle's luck moves the ratio).
+    assert float(calibrated["ate_rmse"]) <= 1.5 * float(given["ate_rmse"]) + 0.02
+    assert int(float(calibrated["num_landmarks"])) >= 0.8 * 24
+    # --params reuses the saved calibration: same settings, same key, same run.
+    status, out, reused = _run_noisy(tmp_path, monkeypatch, capsys, "--params", str(saved))
+    assert status == 0 and "calibration:" not in out
+    assert reused["ate_rmse"] == calibrated["ate_rmse"]
+
+
+def test_defaults_on_a_user_log_warn_in_plain_words(tmp_path, monkeypatch, capsys):
+    # The library defaults (1 cm floor at short range) are 5x too tight for this log:
+    # observations of a tree keep starting new landmarks that are deleted again, and the
+    # weights collapse; the run must say so.
+    status, out, values = _run_noisy(tmp_path, monkeypatch, capsys, "--no-calibrate")
+    assert status == 0
+    assert "WARNING: landmarks were started and deleted over and over" in out
+    assert "WARNING: the effective sample size collapsed" in out
+    assert int(values["landmarks_started"]) > 3 * int(float(values["num_landmarks"]))
+
+
+def test_calibrate_command_writes_params_that_run_reads(tmp_path, monkeypatch, capsys):
+    from jaxslam import pipeline
+    from jaxslam.datasets.log_format import save_log
+
+    monkeypatch.setenv("JAXSLAM_CACHE_DIR", str(tmp_path / "cache"))
+    save_log(tmp_path / "noisy.npz", _noisy_log())
+    try:
+        status = cli.main(["calibrate", "--data", str(tmp_path / "noisy.npz"), "--out",
+                           str(tmp_path / "p.toml"), "--set", "filter.num_particles=16",
+                           "--set", "filter.max_landmarks=48"])
+    finally:
+        _reset_cache_config()
+    assert status == 0
+    params = pipeline.load_params(tmp_path / "p.toml")
+    # The true range std is 5 cm at every distance (2-8 m here); the fit's std at 5 m is
+    # within 30 % (about 400 associated observations and a two-term fit).
+    std_5m = float(params.range_noise[0]) * 5 + float(params.range_noise[1])
+    assert 0.035 <= std_5m <= 0.065
+    assert cli.main(["calibrate", "--data", str(tmp_path / "missing.npz"), "--out",
+                     str(tmp_path / "q.toml")]) == 2
+
+
+def test_params_file_errors(tmp_path):
+    from jaxslam import pipeline
+
+    (tmp_path / "bad.toml").write_text("[params]\nnot_a_field = 1.0\n")
+    with pytest.raises(ValueError, match="not_a_field"):
+        pipeline.load_params(tmp_path / "bad.toml")
+    (tmp_path / "empty.toml").write_text("x = 1\n")
+    with pytest.raises(ValueError, match=r"no \[params\] table"):
+        pipeline.load_params(tmp_path / "empty.toml")
+    with pytest.raises(ValueError, match="cannot read"):
+        pipeline.load_params(tmp_path / "absent.toml")

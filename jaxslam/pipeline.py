@@ -1,0 +1,239 @@
+"""One pipeline for a robot log: calibrate, filter, smooth (optional), evaluate, warn.
+
+``filter_log(log, config, params, key)`` is what ``jaxslam run --data`` and
+``jaxslam calibrate`` call, and what a user importing jaxslam as a backend calls:
+
+    1. observations and controls from the ``RobotLog`` (detected trunks: ``obs_z``);
+    2. ``calibrate_params`` from the log alone, unless ``calibrate=False``;
+    3. ``run_filter`` with the lineage recorded, so the best particle's data association is
+       known (for the smoother and for the warnings);
+    4. optionally ``smoothing.smooth_lineage`` of that particle's history;
+    5. metrics against the log's ground truth when it has any (truth only scores);
+    6. ``run_warnings``: plain-word warnings about a run that went wrong.
+
+``save_params`` / ``load_params`` store a ``Params`` as a TOML table of its fields, so a
+calibration can be reused (``jaxslam run --data LOG --params FILE``).
+"""
+from __future__ import annotations
+
+import pathlib
+import tomllib
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxslam import lineage, metrics
+from jaxslam.filter import Estimate, Trace, estimate, run_filter
+from jaxslam.self_calibration import CalibrationInfo, calibrate_params
+from jaxslam.types import FilterConfig, Params, default_params
+
+UNMATCHED_WARNING = 0.5  # warn when more than this share of observations matched nothing
+ESS_COLLAPSE = 0.05  # a step's ESS below this share of P counts as collapsed
+ESS_WARNING = 0.25  # warn when more than this share of steps collapsed
+CHURN_WARNING = 3.0  # warn when more than this many landmarks were started per one kept
+
+
+class LogRun(NamedTuple):
+    """The result of ``filter_log``.
+
+    Attributes:
+      params: the ``Params`` the filter ran with (calibrated unless told not to).
+      calibration: ``CalibrationInfo``, or None when not calibrated.
+      estimate: final ``Estimate`` (the best particle's map).
+      trace: the filter's ``Trace`` (lineage included).
+      mean_pose: (T, 3) the weighted mean pose after each step.
+      smoothed_pose: (T, 3) the smoothed path, or None.
+      metrics: dict of floats (truth-based ones only when the log has truth).
+      warnings: tuple of plain-word warnings (``run_warnings``).
+    """
+
+    params: Params
+    calibration: CalibrationInfo | None
+    estimate: Estimate
+    trace: Trace
+    mean_pose: np.ndarray
+    smoothed_pose: np.ndarray | None
+    metrics: dict
+    warnings: tuple
+
+
+def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int,
+                 births: int = 0) -> list[str]:
+    """Plain-word warnings about a finished run (each names the number behind it).
+
+    Args:
+      trace: the run's ``Trace``. valid: (T, K) the log's valid observations.
+      unmatched_share: share of valid observations the best particle matched to no existing
+        landmark (they started landmarks or were set aside).
+      num_particles: P.
+      births: landmarks the best particle's history started (``history_counts``).
+    """
+    valid = np.asarray(valid)
+    out = []
+    total = int(valid.sum())
+    invalid = int(np.sum(np.asarray(trace.num_invalid_obs)))
+    if invalid:
+        out.append(f"{invalid} observations were masked as invalid (NaN, negative or zero "
+                   "range, non-finite bearing); check the log's units (ranges in metres, "
+                   "bearings in radians)")
+    if total == 0:
+        out.append("the log has no valid observation: the result is dead reckoning")
+    elif unmatched_share > UNMATCHED_WARNING:
+        out.append(f"{unmatched_share:.0%} of the observations matched no landmark: the "
+                   "sensor noise or the gate is probably too tight for this log (calibrate, "
+                   "or raise range_noise / bearing_noise / association_gate)")
+    dropped = int(np.sum(np.asarray(trace.num_dropped_births)))
+    if dropped:
+        out.append(f"the map slots were full: {dropped} landmark births were dropped "
+                   "(summed over particles); raise filter.max_landmarks")
+    collapsed = np.asarray(trace.ess) < max(1.5, ESS_COLLAPSE * num_particles)
+    if collapsed.mean() > ESS_WARNING:
+        out.append(f"the effective sample size collapsed (below {ESS_COLLAPSE:.0%} of the "
+                   f"particles) in {collapsed.mean():.0%} of the steps; the motion noise is "
+                   "probably too small, or use more particles or the mixture proposal")
+    resets = int(np.sum(np.asarray(trace.weights_reset)))
+    if resets:
+        out.append(f"every particle's weight was zero in {resets} steps (weights reset)")
+    kept = int(np.asarray(trace.num_landmarks)[-1])
+    if total and kept == 0:
+        out.append("the final map is empty although the log has observations")
+    elif births > CHURN_WARNING * max(kept, 1):
+        out.append(f"landmarks were started and deleted over and over ({births} started, "
+                   f"{kept} kept): observations of one tree are not being matched to it, so "
+                   "the sensor noise or the gate is probably too tight (calibrate)")
+    return out
+
+
+def history_counts(trace: Trace, final_state, valid) -> tuple[float, int]:
+    """(share of valid observations matched to no landmark, landmarks started) along the
+    best particle's history."""
+    history = lineage.trace_lineage(trace.lineage, estimate(final_state).best_particle)
+    valid = np.asarray(valid)
+    births = int(np.sum((np.asarray(history.birth_slot) >= 0) & valid))
+    if not valid.any():
+        return 0.0, births
+    return float(np.mean(np.asarray(history.match)[valid] < 0)), births
+
+
+def _truth_metrics(log, mean_pose, smoothed, est, map_match_threshold: float) -> dict:
+    values = {}
+    if log.truth_pose is not None:
+        truth = np.asarray(log.truth_pose)
+        values["final_pose_error"] = float(np.hypot(*(mean_pose[-1, :2] - truth[-1, :2])))
+        values["ate_rmse"] = float(metrics.ate_rmse(mean_pose, truth))
+        values["ate_rmse_aligned"] = float(metrics.ate_rmse(mean_pose, truth, align=True))
+        if smoothed is not None:
+            values["smoothed_ate_rmse"] = float(metrics.ate_rmse(smoothed, truth))
+            values["smoothed_ate_rmse_aligned"] = float(metrics.ate_rmse(smoothed, truth,
+                                                                         align=True))
+    if log.truth_landmarks is not None and len(log.truth_landmarks):
+        trees = np.asarray(log.truth_landmarks)
+        scores = metrics.map_metrics(est.landmark_mean, est.active, trees,
+                                     np.ones(len(trees), bool), map_match_threshold)
+        values.update({name: float(value) for name, value in scores._asdict().items()})
+    return values
+
+
+def filter_log(log, config: FilterConfig, params: Params | None = None, key=None, *,
+               calibrate: bool = True, smooth: bool = False, visit_gap: int | None = None,
+               map_match_threshold: float = 1.0, calibration_options: dict | None = None,
+               progress: Callable[[str], None] | None = None) -> LogRun:
+    """Calibrate (by default), filter and evaluate one ``RobotLog`` (module docstring).
+
+    Args:
+      log: a ``RobotLog`` with detected observations (``obs_z``).
+      config: the ``FilterConfig``; ``max_obs`` and ``motion_model`` are taken from the log.
+      params: the settings to run with (``calibrate=False``) or to start the calibration from
+        (default ``starting_params``); with ``calibrate=False`` and None, ``default_params``.
+      key: PRNG key (default ``PRNGKey(0)``), used by the calibration and the final run.
+      calibrate: estimate the settings from the log first (``calibrate_params``).
+      smooth / visit_gap: smooth the best particle's history (``smoothing.smooth_lineage``).
+      map_match_threshold: [m] landmark-to-tree distance of a match in the map metrics.
+      calibration_options: keyword arguments for ``calibrate_params``.
+      progress: optional callable(str) told of each stage.
+    """
+    import dataclasses
+
+    key = jax.random.PRNGKey(0) if key is None else key
+    obs = log.observations()
+    config = dataclasses.replace(config, max_obs=int(obs.z.shape[1]),
+                                 motion_model=log.motion_model)
+    controls = jnp.asarray(np.asarray(log.controls), jnp.float32)
+    start = np.zeros(3) if log.initial_pose is None else np.asarray(log.initial_pose)
+    calibration = None
+    if calibrate:
+        params, calibration = calibrate_params(config, key, controls, obs, start, params,
+                                               progress=progress,
+                                               **(calibration_options or {}))
+    elif params is None:
+        params = default_params(config)
+    final, trace = run_filter(config, key, params, controls, obs,
+                              jnp.asarray(start, jnp.float32), record_lineage=True)
+    est = estimate(final)
+    mean_pose = np.asarray(trace.mean_pose, np.float64)
+    smoothed = None
+    if smooth:
+        from jaxslam import smoothing
+        from jaxslam.motion import control_to_odometry
+
+        history = lineage.trace_lineage(trace.lineage, est.best_particle)
+        odometry = control_to_odometry(controls, params, log.motion_model)
+        smoothed = smoothing.smooth_lineage(np.asarray(start, np.float64),
+                                            jax.tree.map(np.asarray, history),
+                                            np.asarray(odometry), np.asarray(obs.z), params,
+                                            visit_gap=visit_gap).path
+    valid = np.asarray(obs.valid)
+    share, births = history_counts(trace, final, valid)
+    values = {"steps": log.num_steps, "num_landmarks": int(np.sum(np.asarray(est.active))),
+              "valid_observations": int(valid.sum()),
+              "invalid_observations": int(np.sum(np.asarray(trace.num_invalid_obs))),
+              "unmatched_share": share, "landmarks_started": births,
+              "dropped_births": int(np.sum(np.asarray(trace.num_dropped_births)))}
+    values.update(_truth_metrics(log, mean_pose, smoothed, est, map_match_threshold))
+    warnings = run_warnings(trace, valid, share, config.num_particles, births)
+    if calibration is not None:
+        warnings = list(calibration.warnings) + warnings
+    return LogRun(params, calibration, est, trace, mean_pose, smoothed, values, tuple(warnings))
+
+
+def params_to_dict(params: Params) -> dict:
+    """``Params`` as {field: float or list of floats} (inf kept; TOML writes it as inf)."""
+    out = {}
+    for name, value in params._asdict().items():
+        array = np.asarray(value, np.float64)
+        out[name] = float(array) if array.ndim == 0 else [float(v) for v in array]
+    return out
+
+
+def save_params(path, params: Params, comment: str | None = None) -> pathlib.Path:
+    """Write ``params`` as a TOML table ``[params]`` (``load_params`` reads it back)."""
+    import tomli_w
+
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = tomli_w.dumps({"params": params_to_dict(params)})
+    header = "".join(f"# {line}\n" for line in (comment or "").splitlines())
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(header + text)
+    tmp.replace(path)
+    return path
+
+
+def load_params(path, config: FilterConfig | None = None) -> Params:
+    """``Params`` from a TOML file of ``save_params`` (or any ``[params]`` table of fields).
+
+    Fields left out take ``default_params``; unknown fields are an error naming them.
+    """
+    path = pathlib.Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as error:
+        raise ValueError(f"{path}: cannot read a params TOML file ({error}); expected a "
+                         "[params] table as written by `jaxslam calibrate --out`") from error
+    table = data.get("params")
+    if not isinstance(table, dict):
+        raise ValueError(f"{path}: no [params] table; expected one as written by "
+                         "`jaxslam calibrate --out`")
+    return default_params(config, **table)

@@ -1,0 +1,439 @@
+"""Self-calibration: the filter's noise and sensor settings estimated from a log alone.
+
+A user with a robot log has no ground truth to tune against. ``calibrate_params`` finds the
+settings from the odometry and the observations only, by an expectation-maximisation of the
+kind Probabilistic Robotics (Thrun, Burgard and Fox, sections 6.3 and 11) and GraphSLAM noise
+estimation use, with the particle filter as the E-step's data associator:
+
+    repeat (iteration i = 0, 1, ...):
+      1. filter the log with Params_i (``run_filter``, one fixed key: common random numbers,
+         so two iterations differ only by their settings), record the lineage;
+      2. take the best particle's history: its data association j(t, k) (``trace_lineage``);
+      3. smooth with that association fixed (``smoothing.smooth_path``): the maximum
+         a-posteriori path x*_{0:T-1} and map m* of the log, Huber-robust;
+      4. M-step on the residuals of that solution:
+         * shape: fit Eq. (1) of Geiser et al., "Practical Implementation of FastSLAM for
+           Forestry Robot" (ICAROB 2023), to the move residuals (x*_{t-1} (-) x*_t against the
+           measured move) and Table 2's std = c_d range + c_0 to the observation residuals
+           h(x*_t, m*_j) - z_tk, with the robust grouped fit of ``calibrate.fit_noise``;
+         * scale: residuals of a least-squares solution are smaller than the noise (each
+           group's residual sum of squares has r_g = n_g - tr(J_g H^-1 J_g^T) degrees of
+           freedom, not n_g). The smoother's variance components (Helmert/Forstner,
+           ``smooth_path(calibrate_rounds=...)``) give the unbiased factor of each noise group
+           (heading, translation, range, bearing); the fitted shape is rescaled so that its
+           mean variance over the group's samples equals that estimate. Without it, EM on MAP
+           residuals shrinks the noise every iteration;
+         * sensor: ``max_range`` from the observed ranges, ``miss_range`` and
+           ``detection_probability`` from how often a smoothed landmark predicted in range is
+           seen, ``false_alarm_probability`` from the share of observations no other
+           observation confirms, ``association_gate`` from the innovations at the filter's
+           own pose (so the gate covers the pose error a FastSLAM 1.0 innovation leaves out);
+      5. stop when every group's typical std moved by less than ``tol`` (relative).
+
+Why this and not a likelihood search over a population of Params: the filter's marginal
+likelihood is a noisy, flat function of 9 motion and 4 sensor coefficients at the particle
+counts users run, while the smoother's residuals measure each noise group directly, with
+degrees of freedom in the thousands on a real log, and cost one filter run per iteration.
+
+Uncertainty: a group's std estimated from r_g degrees of freedom has a relative standard
+error of about 1 / sqrt(2 r_g) (chi-square); ``CalibrationInfo.relative_std`` reports it with
+r_g taken as the group's sample count (an upper bound on r_g, so the interval is a lower bound).
+
+Shapes: T steps, K observations per step, S associated observations, L smoothed landmarks.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxslam import calibrate, lineage, smoothing
+from jaxslam.filter import estimate, run_filter
+from jaxslam.geometry import range_bearing
+from jaxslam.motion import control_to_odometry, odometry_from_poses, odometry_std
+from jaxslam.types import FilterConfig, Observations, Params, default_params
+
+CHI2_2DOF_999 = 13.8155  # chi-square quantile, 2 degrees of freedom, 99.9 %
+# The estimated gate is clipped to [chi-square 99.9 %, the library's default gate 25]: above
+# 25 the particles' own pose errors are better handled by the proposal than by the gate.
+GATE_LIMITS = (CHI2_2DOF_999, 25.0)
+MIN_MOVES = 30  # fewer moves than this: the motion noise is not fitted
+MIN_OBSERVATIONS = 20  # fewer associated observations (in landmarks seen >= 3 times): none
+MIN_SIGHTINGS = 3  # a landmark's observations enter the fits when it was seen this often
+STD_FLOOR = 1e-5  # lower bound of every fitted constant term (keeps covariances invertible)
+
+
+class CalibrationInfo(NamedTuple):
+    """What ``calibrate_params`` did.
+
+    Attributes:
+      iterations: EM iterations run.
+      objective: (iterations,) the filter's mean per-observation log-likelihood with each
+        iteration's Params (``Trace.mean_log_likelihood`` averaged over steps).
+      smoother_cost: (iterations,) the smoother's final robust cost per residual row.
+      typical_std: (iterations + 1, 4) typical std of the four noise groups (heading [rad],
+        translation [m], range [m], bearing [rad]: the mean over the log's samples) before
+        each iteration and after the last.
+      values: the final settings, a dict of floats or tuples (the fitted ``Params`` fields).
+      relative_std: dict group -> relative standard error of its std (module docstring).
+      samples: dict group -> number of samples the fit used.
+      converged: whether the typical stds stopped moving (``tol``).
+      verdict: one line in plain words.
+      warnings: tuple of plain-word warnings (data too sparse, a group kept at its start).
+    """
+
+    iterations: int
+    objective: np.ndarray
+    smoother_cost: np.ndarray
+    typical_std: np.ndarray
+    values: dict
+    relative_std: dict
+    samples: dict
+    converged: bool
+    verdict: str
+    warnings: tuple
+
+
+class _Residuals(NamedTuple):
+    """Samples of one smoothed solution (host NumPy, float64)."""
+
+    true_moves: np.ndarray  # (T, 3) smoothed moves (rot1, trans, rot2)
+    measured_moves: np.ndarray  # (T, 3)
+    predicted_z: np.ndarray  # (S, 2) h(x*_t, m*_j)
+    measured_z: np.ndarray  # (S, 2)
+    filter_z: np.ndarray  # (S, 2) h(x_filter_t, m*_j), the filter's own pose
+    obs_step: np.ndarray  # (S,) step of each sample
+    obs_landmark: np.ndarray  # (S,) smoothed landmark index
+    sightings: np.ndarray  # (L,) observations of each landmark
+
+
+def starting_params(config: FilterConfig | None = None, dtype=jnp.float32, **overrides) -> Params:
+    """The first iteration's settings when the user gives none: wide, so data associate.
+
+    Seed Table 1 motion noise doubled, and a sensor noise floor of 10 cm and 0.02 rad (a
+    2-20x wider sensor than Table 2): too tight a start makes every observation a new
+    landmark and leaves nothing to calibrate on; too wide a start only costs an iteration.
+    """
+    base = default_params(config, dtype=dtype)
+    values = dict(rot1_noise=2 * np.asarray(base.rot1_noise),
+                  trans_noise=2 * np.asarray(base.trans_noise),
+                  rot2_noise=2 * np.asarray(base.rot2_noise),
+                  range_noise=(0.005, 0.0), bearing_noise=(0.0, 0.0),
+                  range_std_floor=0.1, bearing_std_floor=0.02)
+    values.update(overrides)
+    return default_params(config, dtype=dtype, **values)
+
+
+def _typical_stds(params: Params, odometry, z_range) -> np.ndarray:
+    """(4,) mean std over the log of heading, translation, range, bearing (``CalibrationInfo``)."""
+    move_std = np.asarray(odometry_std(jnp.asarray(odometry), params), np.float64)
+    heading = np.sqrt(np.mean(move_std[:, 0] ** 2 + move_std[:, 2] ** 2))
+    translation = np.sqrt(np.mean(move_std[:, 1] ** 2))
+    obs_std = smoothing._observation_std(np.asarray(z_range, np.float64), params)
+    return np.array([heading, translation, *np.sqrt(np.mean(obs_std**2, axis=0))])
+
+
+def _residuals(start_pose, smoothed: smoothing.Smoothed, filter_path, odometry, z,
+               min_translation: float) -> _Residuals:
+    poses = np.concatenate([np.asarray(start_pose, np.float64)[None], smoothed.path])
+    true_moves = np.asarray(odometry_from_poses(jnp.asarray(poses[:-1]),
+                                                jnp.asarray(poses[1:]), min_translation),
+                            np.float64)
+    ids = np.asarray(smoothed.landmark_of_obs)
+    step, row = np.nonzero(ids >= 0)
+    landmark = ids[step, row]
+    point = smoothed.landmark[landmark]
+    predicted = np.asarray(range_bearing(jnp.asarray(smoothed.path[step]), jnp.asarray(point)),
+                           np.float64)
+    at_filter = np.asarray(range_bearing(jnp.asarray(filter_path[step]), jnp.asarray(point)),
+                           np.float64)
+    sightings = np.bincount(landmark, minlength=len(smoothed.landmark))
+    return _Residuals(true_moves, np.asarray(odometry, np.float64), predicted,
+                      np.asarray(z, np.float64)[step, row], at_filter, step, landmark,
+                      sightings)
+
+
+def _rescale(coefficients, features, target_variance):
+    """Coefficients scaled so that mean((features . c)^2) equals ``target_variance``."""
+    fitted = features @ coefficients
+    mean_variance = float(np.mean(fitted**2))
+    if not mean_variance > 0.0:
+        return None
+    return coefficients * np.sqrt(target_variance / mean_variance)
+
+
+def _motion_update(res: _Residuals, params: Params, scales: smoothing.NoiseScales):
+    """New (rot1, trans, rot2) coefficients (3, 3), or None when there are too few moves."""
+    moving = np.all(np.isfinite(res.true_moves), axis=1)
+    if int(moving.sum()) < MIN_MOVES:
+        return None
+    fit = calibrate.fit_motion_noise(res.true_moves, res.measured_moves, moving,
+                                     trans_bins=4, rot_bins=4, min_count=5)
+    current = np.asarray(odometry_std(jnp.asarray(res.measured_moves), params), np.float64)
+    _, features = calibrate.motion_samples(jnp.asarray(res.measured_moves),
+                                           jnp.asarray(res.measured_moves))
+    features = np.asarray(features, np.float64)[:, moving]
+    current = current[moving]
+    coefficients = [np.asarray(f.coefficients, np.float64) for f in fit]
+    # The heading group holds rot1 and rot2 together (its whitened row is their sum), so both
+    # rows take one factor: the one that brings their summed variance to the estimate.
+    heading_target = scales.heading**2 * np.mean(current[:, 0] ** 2 + current[:, 2] ** 2)
+    heading_fit = np.mean((features[0] @ coefficients[0]) ** 2
+                          + (features[2] @ coefficients[2]) ** 2)
+    trans = _rescale(coefficients[1], features[1],
+                     scales.translation**2 * np.mean(current[:, 1] ** 2))
+    if not heading_fit > 0.0 or trans is None:
+        return None
+    factor = np.sqrt(heading_target / heading_fit)
+    rows = [coefficients[0] * factor, trans, coefficients[2] * factor]
+    # A positive constant keeps every move's covariance invertible (smoothing, proposals).
+    return np.stack([np.concatenate([r[:2], [max(r[2], STD_FLOOR)]]) for r in rows])
+
+
+def _observation_update(res: _Residuals, params: Params, scales: smoothing.NoiseScales,
+                        used: np.ndarray):
+    """New (range_noise, bearing_noise) (2, 2), or None when there are too few samples."""
+    if int(used.sum()) < MIN_OBSERVATIONS:
+        return None
+    fit = calibrate.fit_observation_noise(res.predicted_z, res.measured_z, used,
+                                          distance_bins=6, min_count=5)
+    z_range = res.measured_z[used, 0]
+    current = smoothing._observation_std(z_range, params)
+    features = np.stack([z_range, np.ones_like(z_range)], 1)
+    new = []
+    for group, (component, scale) in enumerate(zip(fit, (scales.range, scales.bearing))):
+        row = _rescale(np.asarray(component.coefficients, np.float64), features,
+                       scale**2 * float(np.mean(current[:, group] ** 2)))
+        if row is None:
+            return None
+        new.append(np.array([row[0], max(row[1], STD_FLOOR)]))
+    return np.stack(new)
+
+
+def _sensor_update(res: _Residuals, z, valid, used: np.ndarray, smoothed_path, landmark,
+                   params: Params) -> dict:
+    """max_range, miss_range, detection and false-alarm probabilities, gate (docstring)."""
+    z_range = np.asarray(z, np.float64)[..., 0][np.asarray(valid)]
+    max_range = float(np.quantile(z_range, 0.999) * 1.02) if z_range.size else None
+    out = {}
+    if max_range is not None:
+        out["max_range"] = max_range
+    confirmed = np.nonzero(res.sightings >= MIN_SIGHTINGS)[0]
+    if confirmed.size and max_range is not None:
+        seen = np.zeros((len(smoothed_path), len(landmark)), bool)
+        seen[res.obs_step, res.obs_landmark] = True
+        first = np.full(len(landmark), len(smoothed_path))
+        last = np.full(len(landmark), -1)
+        np.minimum.at(first, res.obs_landmark, res.obs_step)
+        np.maximum.at(last, res.obs_landmark, res.obs_step)
+        steps = np.arange(len(smoothed_path))[:, None]
+        alive = (steps >= first[None, confirmed]) & (steps <= last[None, confirmed])
+        dx = landmark[None, confirmed, 0] - smoothed_path[:, None, 0]
+        dy = landmark[None, confirmed, 1] - smoothed_path[:, None, 1]
+        predicted = np.hypot(dx, dy)
+        in_range = alive & (predicted <= max_range) & (predicted >= float(params.min_range))
+        detected = seen[:, confirmed] & in_range
+        edges = np.linspace(0.0, max_range, 11)
+        bins = np.clip(np.digitize(predicted[in_range], edges) - 1, 0, 9)
+        trials = np.bincount(bins, minlength=10)
+        hits = np.bincount(np.clip(np.digitize(predicted[detected], edges) - 1, 0, 9),
+                           minlength=10)
+        rate = np.where(trials > 0, hits / np.maximum(trials, 1), np.nan)
+        peak = np.nanmax(rate) if np.any(trials > 0) else np.nan
+        if np.isfinite(peak) and peak > 0:
+            # miss_range: the far edge of the last bin (from the sensor out) whose detection
+            # rate is still half the best bin's; beyond it a missed landmark is no evidence.
+            good = np.nonzero(np.nan_to_num(rate) >= 0.5 * peak)[0]
+            out["miss_range"] = float(edges[good.max() + 1])
+            near = predicted[in_range] <= out["miss_range"]
+            det_near = predicted[detected] <= out["miss_range"]
+            out["detection_probability"] = float(np.clip(det_near.sum() / max(near.sum(), 1),
+                                                         0.05, 0.99))
+    if used.any():
+        std = smoothing._observation_std(res.measured_z[used, 0], params)
+        innovation = res.filter_z[used] - res.measured_z[used]
+        innovation[:, 1] = (innovation[:, 1] + np.pi) % (2 * np.pi) - np.pi
+        nis = np.sum((innovation / std) ** 2, axis=1)
+        # Inliers of the smoothed solution only: a wrong association must not widen the gate.
+        smooth_err = res.predicted_z[used] - res.measured_z[used]
+        smooth_err[:, 1] = (smooth_err[:, 1] + np.pi) % (2 * np.pi) - np.pi
+        inlier = np.sum((smooth_err / std) ** 2, axis=1) <= 9.0
+        if inlier.sum() >= MIN_OBSERVATIONS:
+            out["association_gate"] = float(np.clip(np.quantile(nis[inlier], 0.99),
+                                                    *GATE_LIMITS))
+    return out
+
+
+def _single_share(ids):
+    """Share of associated observations whose landmark no other observation confirms.
+
+    The false-alarm estimate: a clutter detection starts a landmark that is never seen
+    again. None when nothing is associated.
+    """
+    used = ids >= 0
+    if not used.any():
+        return None
+    counts = np.bincount(ids[used])
+    return float(np.mean(counts[ids[used]] == 1))
+
+
+def _confirmed_ids(ids):
+    """(T, K) landmark ids with landmarks seen once dropped (-1) and the rest renumbered.
+
+    A landmark seen once has no residual (its position fits its one observation exactly),
+    so it carries nothing about the noise, and its unknowns would only enlarge the solve.
+    """
+    used = ids >= 0
+    counts = np.bincount(ids[used], minlength=1)
+    keep = used & (counts[np.where(used, ids, 0)] >= 2)
+    out = np.full(ids.shape, -1, ids.dtype)
+    if keep.any():
+        _, out[keep] = np.unique(ids[keep], return_inverse=True)
+    return out
+
+
+def _with_values(params: Params, values: dict) -> Params:
+    return params._replace(**{name: jnp.asarray(value, getattr(params, name).dtype)
+                              for name, value in values.items()})
+
+
+def _plain(value):
+    array = np.asarray(value, np.float64)
+    return float(array) if array.ndim == 0 else tuple(float(v) for v in array)
+
+
+def calibrate_params(config: FilterConfig, key, controls, observations: Observations,
+                     initial_pose=None, params: Params | None = None, *,
+                     motion_model: str | None = None, iterations: int = 6, tol: float = 0.05,
+                     calibrate_sensor: bool = True, smoother_iterations: int = 15,
+                     progress=None) -> tuple[Params, CalibrationInfo]:
+    """Estimate the filter's settings from one log, with no ground truth (module docstring).
+
+    Args:
+      config: the ``FilterConfig`` the log will be filtered with (K = ``max_obs`` must match
+        the observations). Its motion model is used unless ``motion_model`` is given.
+      key: PRNG key of every iteration's filter run (the same one each time).
+      controls: (T, 3) the log's controls. observations: ``Observations`` (T, K, ...).
+      initial_pose: (3,) start pose (default zeros).
+      params: the first iteration's settings; default ``starting_params(config)``. Fields the
+        calibration does not estimate are kept from it.
+      iterations: most EM iterations. tol: stop when every noise group's typical std moved
+        by less than this fraction in one iteration.
+      calibrate_sensor: also estimate max_range, miss_range, detection and false-alarm
+        probabilities and the gate (else only the noise).
+      smoother_iterations: most Levenberg-Marquardt steps of each smoothing.
+      progress: optional callable(str) told of each iteration in one line.
+    Returns:
+      (params, info): the calibrated ``Params`` (dtype of ``params``) and ``CalibrationInfo``.
+      A log too short or too sparse to calibrate returns the given ``params`` unchanged for
+      the groups it could not fit, and says so in ``info.warnings`` and ``info.verdict``.
+    """
+    if iterations < 1 or not tol > 0:
+        raise ValueError(f"calibrate_params needs iterations >= 1 and tol > 0; got "
+                         f"{iterations}, {tol}")
+    motion_model = motion_model or config.motion_model
+    params = starting_params(config) if params is None else params
+    controls = np.asarray(controls)
+    if controls.ndim != 2 or controls.shape[1] != 3:
+        raise ValueError(f"calibrate_params: controls must be (T, 3); got {controls.shape}")
+    steps = controls.shape[0]
+    if observations.z.shape[:1] != (steps,):
+        raise ValueError(f"calibrate_params: observations have {observations.z.shape[0]} "
+                         f"steps but controls {steps}; expected one row of each per step")
+    start = np.zeros(3) if initial_pose is None else np.asarray(initial_pose, np.float64)
+    dtype = params.rot1_noise.dtype
+    z = np.asarray(observations.z, np.float64)
+    valid = np.asarray(observations.valid) & np.all(np.isfinite(z), axis=-1)
+    z = np.where(valid[..., None], z, 0.0)
+    warnings: list[str] = []
+    if valid.sum() < MIN_OBSERVATIONS:
+        warnings.append(f"only {int(valid.sum())} valid observations in the log; the "
+                        f"calibration needs at least {MIN_OBSERVATIONS} of landmarks seen "
+                        f"{MIN_SIGHTINGS} or more times: the given settings are used")
+        return params, CalibrationInfo(0, np.zeros(0), np.zeros(0), np.zeros((0, 4)),
+                                       {}, {}, {}, False, "not calibrated: too few "
+                                       "observations", tuple(warnings))
+    objective, costs, typical = [], [], []
+    relative_std, samples, values = {}, {}, {}
+    converged = False
+    done = 0
+    motion = obs = None
+    used = np.zeros(0, bool)
+    for done in range(1, iterations + 1):
+        odometry = np.asarray(control_to_odometry(jnp.asarray(controls, dtype), params,
+                                                  motion_model), np.float64)
+        typical.append(_typical_stds(params, odometry, z[valid][:, 0]))
+        final, trace = run_filter(config, key, params, jnp.asarray(controls, dtype),
+                                  observations, jnp.asarray(start, dtype), record_lineage=True)
+        objective.append(float(np.mean(np.asarray(trace.mean_log_likelihood))))
+        history = jax.tree.map(np.asarray, lineage.trace_lineage(
+            trace.lineage, estimate(final).best_particle))
+        ids, _ = lineage.landmark_identities(history.match, history.birth_slot)
+        ids = np.where(valid, np.asarray(ids), -1)
+        single_share = _single_share(ids)
+        ids = _confirmed_ids(ids)
+        if not np.any(ids >= 0):
+            warnings.append("no landmark was observed twice with the starting settings: "
+                            "nothing to calibrate on, the given settings are used")
+            break
+        try:
+            smoothed = smoothing.smooth_path(start, np.asarray(history.pose, np.float64),
+                                             odometry, z, ids, params,
+                                             iterations=smoother_iterations, tol=1e-4,
+                                             calibrate_rounds=2)
+        except (RuntimeError, np.linalg.LinAlgError, ValueError) as error:
+            warnings.append(f"the smoother failed on this log ({error}); calibration stopped "
+                            f"at iteration {done}")
+            break
+        costs.append(float(smoothed.cost[-1]) / max(3 * steps + 2 * int((ids >= 0).sum()), 1))
+        res = _residuals(start, smoothed, np.asarray(history.pose, np.float64), odometry, z,
+                         float(params.min_translation))
+        used = res.sightings[res.obs_landmark] >= MIN_SIGHTINGS
+        update = {}
+        motion = _motion_update(res, params, smoothed.noise_scales)
+        if motion is not None:
+            update.update(rot1_noise=motion[0], trans_noise=motion[1], rot2_noise=motion[2])
+            samples["heading"] = samples["translation"] = steps
+        obs = _observation_update(res, params, smoothed.noise_scales, used)
+        if obs is not None:
+            update.update(range_noise=obs[0], bearing_noise=obs[1],
+                          range_std_floor=max(STD_FLOOR, 0.5 * obs[0][1]),
+                          bearing_std_floor=max(STD_FLOOR, 0.5 * obs[1][1]))
+            samples["range"] = samples["bearing"] = int(used.sum())
+        if calibrate_sensor:
+            update.update(_sensor_update(res, z, valid, used, smoothed.path, smoothed.landmark,
+                                         params))
+            if single_share is not None:
+                update["false_alarm_probability"] = float(np.clip(single_share, 1e-3, 0.5))
+        if "association_gate" in update:
+            update["airlock_sigmas"] = float(np.sqrt(update["association_gate"]))
+        params = _with_values(params, update)
+        values.update({name: _plain(value) for name, value in update.items()})
+        new_typical = _typical_stds(params, odometry, z[valid][:, 0])
+        change = np.max(np.abs(new_typical / typical[-1] - 1.0))
+        if progress is not None:
+            progress(f"calibration iteration {done}: log-likelihood {objective[-1]:.3f}, "
+                     f"typical stds heading {new_typical[0]:.4g} rad, translation "
+                     f"{new_typical[1]:.4g} m, range {new_typical[2]:.4g} m, bearing "
+                     f"{new_typical[3]:.4g} rad (largest change {change:.1%})")
+        if change < tol:
+            converged = True
+            break
+    typical.append(_typical_stds(params, odometry, z[valid][:, 0]))
+    if motion is None:
+        warnings.append(f"too few moves ({steps}; need {MIN_MOVES}) to fit the motion noise: "
+                        "kept the given motion noise")
+    if obs is None:
+        warnings.append(f"too few observations of landmarks seen {MIN_SIGHTINGS} or more "
+                        f"times ({int(used.sum())}; need {MIN_OBSERVATIONS}) to fit the "
+                        "sensor noise: kept the given sensor noise")
+    relative_std = {group: 1.0 / np.sqrt(2.0 * n) for group, n in samples.items()}
+    verdict = ("converged" if converged else f"not converged after {done} iterations "
+               f"(the last moved a noise std by more than {tol:.0%})")
+    if warnings:
+        verdict += "; partly calibrated (see warnings)"
+    return params, CalibrationInfo(done, np.asarray(objective), np.asarray(costs),
+                                   np.asarray(typical), values, relative_std, samples,
+                                   converged, verdict, tuple(warnings))

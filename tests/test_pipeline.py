@@ -1,0 +1,112 @@
+"""The log pipeline: warnings, params files, filter_log (``jaxslam.pipeline``)."""
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from jaxslam import pipeline
+from jaxslam.datasets.log_format import RobotLog
+from jaxslam.filter import Trace
+from jaxslam.types import FilterConfig, default_params
+
+P = 10
+
+
+def _trace(steps=20, ess=10.0, invalid=0, dropped=0, resets=0, landmarks=5):
+    """A ``Trace`` of a healthy run, with the given fields changed."""
+    zeros = np.zeros(steps)
+    weights_reset = np.zeros(steps, bool)
+    weights_reset[:resets] = True
+    num_invalid = np.zeros(steps, int)
+    num_invalid[0] = invalid
+    num_dropped = np.zeros(steps, int)
+    num_dropped[-1] = dropped
+    return Trace(mean_pose=np.zeros((steps, 3)), best_pose=np.zeros((steps, 3)),
+                 ess=np.full(steps, ess), num_landmarks=np.full(steps, landmarks),
+                 resampled=np.zeros(steps, bool), weights_reset=weights_reset,
+                 num_invalid_obs=num_invalid, num_dropped_births=num_dropped,
+                 match_rounds=zeros, mixture_ratio=zeros, mean_log_likelihood=zeros)
+
+
+VALID = np.ones((20, 3), bool)
+
+
+def test_a_healthy_run_has_no_warning():
+    assert pipeline.run_warnings(_trace(), VALID, 0.1, P, births=5) == []
+
+
+@pytest.mark.parametrize("trace, share, births, words", [
+    (_trace(invalid=7), 0.1, 5, "7 observations were masked as invalid"),
+    (_trace(), 0.8, 5, "80% of the observations matched no landmark"),
+    (_trace(dropped=12), 0.1, 5, "12 landmark births were dropped"),
+    (_trace(ess=1.0), 0.1, 5, "collapsed"),
+    (_trace(resets=3), 0.1, 5, "zero in 3 steps"),
+    (_trace(landmarks=0), 0.1, 5, "the final map is empty"),
+    (_trace(landmarks=4), 0.1, 13, "13 started, 4 kept"),
+])
+def test_each_warning(trace, share, births, words):
+    warnings = pipeline.run_warnings(trace, VALID, share, P, births)
+    assert len(warnings) == 1 and words in warnings[0]
+
+
+def test_edges_of_the_warning_thresholds():
+    # Exactly at a threshold is no warning: half unmatched, a quarter of steps collapsed,
+    # three births per kept landmark.
+    assert pipeline.run_warnings(_trace(landmarks=4), VALID, 0.5, P, births=12) == []
+    ess = np.full(20, 10.0)
+    ess[:5] = 1.0
+    assert pipeline.run_warnings(_trace()._replace(ess=ess), VALID, 0.1, P, 5) == []
+    assert "no valid observation" in pipeline.run_warnings(
+        _trace(landmarks=0), np.zeros((20, 3), bool), 0.0, P)[0]
+
+
+def test_params_round_trip_through_toml(tmp_path):
+    params = default_params(max_range=13.5, rot1_noise=(0.01, 0.02, 0.003))
+    path = pipeline.save_params(tmp_path / "sub" / "p.toml", params, comment="a\nb")
+    assert path.read_text().startswith("# a\n# b\n")
+    back = pipeline.load_params(path)
+    for name, value in params._asdict().items():
+        np.testing.assert_array_equal(np.asarray(getattr(back, name)), np.asarray(value),
+                                      err_msg=name)
+    assert np.isinf(float(back.miss_range))  # +inf survives TOML
+
+
+def _log(steps=30):
+    trees = np.array([[2.0, 2.0], [4.0, -2.0], [6.0, 2.0], [8.0, -2.0], [10.0, 2.0]])
+    truth = np.stack([0.4 * np.arange(1, steps + 1), np.zeros(steps), np.zeros(steps)], 1)
+    offset = trees[None] - truth[:, None, :2]
+    z = np.stack([np.hypot(offset[..., 0], offset[..., 1]),
+                  np.arctan2(offset[..., 1], offset[..., 0])], -1)
+    return RobotLog(time=np.arange(steps, dtype=float), motion_model="odometry",
+                    controls=np.tile([0.0, 0.4, 0.0], (steps, 1)), obs_z=z,
+                    obs_valid=z[..., 0] < 6.0, truth_pose=truth, truth_landmarks=trees)
+
+
+def test_filter_log_without_calibration_runs_the_given_params():
+    config = FilterConfig(num_particles=8, max_landmarks=16)
+    # The log's sensor sees 6 m: with the default 20 m, trees behind the robot would count
+    # as missed and be deleted (that is what calibration's max_range is for).
+    params = default_params(range_std_floor=0.05, bearing_std_floor=0.01, max_range=6.0)
+    run = pipeline.filter_log(_log(), config, params, jax.random.PRNGKey(0), calibrate=False)
+    assert run.calibration is None and run.params is params
+    assert run.mean_pose.shape == (30, 3) and run.smoothed_pose is None
+    # Exact odometry and observations: the estimate stays on the truth (cm) and maps
+    # the five trees.
+    assert run.metrics["final_pose_error"] < 0.1
+    assert run.metrics["num_trees_mapped"] == 5
+    assert run.metrics["valid_observations"] == int(_log().obs_valid.sum())
+    assert run.warnings == ()
+
+
+def test_filter_log_calibrates_and_smooths():
+    config = FilterConfig(num_particles=8, max_landmarks=16)
+    run = pipeline.filter_log(_log(40), config, None, jax.random.PRNGKey(0), smooth=True,
+                              calibration_options=dict(iterations=2))
+    assert run.calibration is not None and run.calibration.iterations >= 1
+    assert run.smoothed_pose.shape == (40, 3)
+    assert run.metrics["smoothed_ate_rmse"] < 0.1
+    # The calibrated usable range is the log's 6 m (its largest range, +2 %), so trees left
+    # behind are not deleted as missed: all five stay mapped.
+    assert 5.5 <= float(run.params.max_range) <= 6.0 * 1.02 + 1e-6
+    assert run.metrics["num_trees_mapped"] == 5
