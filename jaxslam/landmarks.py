@@ -44,7 +44,7 @@ class Visibility(NamedTuple):
     expected: (M,) matchable landmarks the sensor should have reported: when all K
       observation rows are valid the detector may have dropped farther trunks (detectors and
       simulators keep the K nearest), so only landmarks up to the farthest observation count;
-      and only those predicted within ``params.miss_range``.
+      and only those predicted within ``params.miss_range`` and ``params.miss_bearing``.
     """
 
     usable_obs: jnp.ndarray
@@ -65,7 +65,8 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
     in_min_range = predicted.range >= params.min_range
     saturated = jnp.all(obs_valid)
     horizon = jnp.where(saturated, jnp.max(jnp.where(obs_valid, z[:, 0], 0.0)), jnp.inf)
-    may_be_missed = (predicted.range <= horizon) & (predicted.range <= params.miss_range)
+    may_be_missed = ((predicted.range <= horizon) & (predicted.range <= params.miss_range)
+                     & (jnp.abs(predicted.bearing) <= params.miss_bearing))
     # Observations nearer than min_range could never match (no landmark there is matchable)
     # and would create a twin every step.
     obs_valid = obs_valid & (z[:, 0] >= params.min_range)

@@ -23,9 +23,15 @@ estimation use, with the particle filter as the E-step's data associator:
            (heading, translation, range, bearing); the fitted shape is rescaled so that its
            mean variance over the group's samples equals that estimate. Without it, EM on MAP
            residuals shrinks the noise every iteration;
-         * sensor: ``max_range`` from the observed ranges, ``miss_range`` and
-           ``detection_probability`` from how often a smoothed landmark predicted in range is
-           seen, ``false_alarm_probability`` from the share of observations no other
+         * tails: the std is then widened, where needed, until 95 % of the group's residuals
+           lie within its 95 % interval (``_tail_factor``; 1 for Gaussian errors). Real
+           sensors are heavy-tailed, and a std fitted to the core alone makes the filter
+           split tail observations into new landmarks, which leaves them out of the next fit:
+           the estimate then shrinks from iteration to iteration;
+         * sensor: ``max_range`` and ``miss_bearing`` (the field of view) from the observed
+           ranges and bearings, ``miss_range`` and
+           ``detection_probability`` from how often a smoothed landmark predicted in view has
+           an observation within 3 std (``_detections``), ``false_alarm_probability`` from the share of observations no other
            observation confirms, ``association_gate`` from the innovations at the filter's
            own pose (so the gate covers the pose error a FastSLAM 1.0 innovation leaves out);
       5. stop when every group's typical std moved by less than ``tol`` (relative).
@@ -63,6 +69,8 @@ MIN_MOVES = 30  # fewer moves than this: the motion noise is not fitted
 MIN_OBSERVATIONS = 20  # fewer associated observations (in landmarks seen >= 3 times): none
 MIN_SIGHTINGS = 3  # a landmark's observations enter the fits when it was seen this often
 STD_FLOOR = 1e-5  # lower bound of every fitted constant term (keeps covariances invertible)
+TAIL_QUANTILE = 0.95  # the share of errors the fitted std must cover (``_tail_factor``)
+CHI2_1DOF = {0.95: 3.8415, 0.99: 6.6349}  # chi-square quantiles, 1 degree of freedom
 
 
 class CalibrationInfo(NamedTuple):
@@ -164,6 +172,21 @@ def _rescale(coefficients, features, target_variance):
     return coefficients * np.sqrt(target_variance / mean_variance)
 
 
+def _tail_factor(errors, std, quantile: float = TAIL_QUANTILE) -> float:
+    """max(1, q-quantile of (e / sigma)^2 over the chi-square-1 q-quantile), a variance factor.
+
+    For Gaussian errors it is 1 up to sampling noise. For heavy-tailed ones (a camera's
+    ranges, commanded-velocity odometry) it widens the std until the q share of the errors
+    falls within the filter's q-interval: a std fitted to the core alone makes the filter
+    split every tail observation into a new landmark, whose residual then leaves the fit,
+    and the next iteration's std is tighter still.
+    """
+    ratio = (np.asarray(errors) / np.maximum(np.asarray(std), STD_FLOOR)) ** 2
+    if ratio.size == 0:
+        return 1.0
+    return max(1.0, float(np.quantile(ratio, quantile)) / CHI2_1DOF[quantile])
+
+
 def _motion_update(res: _Residuals, params: Params, scales: smoothing.NoiseScales):
     """New (rot1, trans, rot2) coefficients (3, 3), or None when there are too few moves."""
     moving = np.all(np.isfinite(res.true_moves), axis=1)
@@ -188,6 +211,14 @@ def _motion_update(res: _Residuals, params: Params, scales: smoothing.NoiseScale
         return None
     factor = np.sqrt(heading_target / heading_fit)
     rows = [coefficients[0] * factor, trans, coefficients[2] * factor]
+    errors, _ = calibrate.motion_samples(jnp.asarray(res.true_moves[moving]),
+                                         jnp.asarray(res.measured_moves[moving]))
+    errors = np.asarray(errors, np.float64)
+    std = [features[i] @ rows[i] for i in range(3)]
+    heading_tail = _tail_factor(errors[:, 0] + errors[:, 2], np.hypot(std[0], std[2]))
+    rows = [rows[0] * np.sqrt(heading_tail), rows[1] * np.sqrt(_tail_factor(errors[:, 1],
+                                                                            std[1])),
+            rows[2] * np.sqrt(heading_tail)]
     # A positive constant keeps every move's covariance invertible (smoothing, proposals).
     return np.stack([np.concatenate([r[:2], [max(r[2], STD_FLOOR)]]) for r in rows])
 
@@ -208,6 +239,10 @@ def _observation_update(res: _Residuals, params: Params, scales: smoothing.Noise
                        scale**2 * float(np.mean(current[:, group] ** 2)))
         if row is None:
             return None
+        error = res.predicted_z[used, group] - res.measured_z[used, group]
+        if group == 1:
+            error = (error + np.pi) % (2 * np.pi) - np.pi
+        row = row * np.sqrt(_tail_factor(error, features @ row))
         new.append(np.array([row[0], max(row[1], STD_FLOOR)]))
     return np.stack(new)
 
@@ -215,31 +250,23 @@ def _observation_update(res: _Residuals, params: Params, scales: smoothing.Noise
 def _sensor_update(res: _Residuals, z, valid, used: np.ndarray, smoothed_path, landmark,
                    params: Params) -> dict:
     """max_range, miss_range, detection and false-alarm probabilities, gate (docstring)."""
-    z_range = np.asarray(z, np.float64)[..., 0][np.asarray(valid)]
-    max_range = float(np.quantile(z_range, 0.999) * 1.02) if z_range.size else None
+    z_valid = np.asarray(z, np.float64)[np.asarray(valid)]
+    max_range = float(np.quantile(z_valid[:, 0], 0.999) * 1.02) if len(z_valid) else None
     out = {}
     if max_range is not None:
         out["max_range"] = max_range
+        # The field of view: a sensor that never reports a bearing past +-b does not miss
+        # the landmarks out there. Below ~170 degrees of half-width, else all round.
+        half_fov = float(np.quantile(np.abs(z_valid[:, 1]), 0.999) * 1.02)
+        out["miss_bearing"] = half_fov if half_fov < 0.95 * np.pi else float(np.pi)
     confirmed = np.nonzero(res.sightings >= MIN_SIGHTINGS)[0]
     if confirmed.size and max_range is not None:
-        seen = np.zeros((len(smoothed_path), len(landmark)), bool)
-        seen[res.obs_step, res.obs_landmark] = True
-        first = np.full(len(landmark), len(smoothed_path))
-        last = np.full(len(landmark), -1)
-        np.minimum.at(first, res.obs_landmark, res.obs_step)
-        np.maximum.at(last, res.obs_landmark, res.obs_step)
-        steps = np.arange(len(smoothed_path))[:, None]
-        alive = (steps >= first[None, confirmed]) & (steps <= last[None, confirmed])
-        dx = landmark[None, confirmed, 0] - smoothed_path[:, None, 0]
-        dy = landmark[None, confirmed, 1] - smoothed_path[:, None, 1]
-        predicted = np.hypot(dx, dy)
-        in_range = alive & (predicted <= max_range) & (predicted >= float(params.min_range))
-        detected = seen[:, confirmed] & in_range
+        predicted, detected = _detections(smoothed_path, landmark[confirmed], z, valid, params,
+                                          max_range, out["miss_bearing"])
         edges = np.linspace(0.0, max_range, 11)
-        bins = np.clip(np.digitize(predicted[in_range], edges) - 1, 0, 9)
+        bins = np.clip(np.digitize(predicted, edges) - 1, 0, 9)
         trials = np.bincount(bins, minlength=10)
-        hits = np.bincount(np.clip(np.digitize(predicted[detected], edges) - 1, 0, 9),
-                           minlength=10)
+        hits = np.bincount(bins[detected], minlength=10)
         rate = np.where(trials > 0, hits / np.maximum(trials, 1), np.nan)
         peak = np.nanmax(rate) if np.any(trials > 0) else np.nan
         if np.isfinite(peak) and peak > 0:
@@ -247,10 +274,9 @@ def _sensor_update(res: _Residuals, z, valid, used: np.ndarray, smoothed_path, l
             # rate is still half the best bin's; beyond it a missed landmark is no evidence.
             good = np.nonzero(np.nan_to_num(rate) >= 0.5 * peak)[0]
             out["miss_range"] = float(edges[good.max() + 1])
-            near = predicted[in_range] <= out["miss_range"]
-            det_near = predicted[detected] <= out["miss_range"]
-            out["detection_probability"] = float(np.clip(det_near.sum() / max(near.sum(), 1),
-                                                         0.05, 0.99))
+            near = predicted <= out["miss_range"]
+            out["detection_probability"] = float(np.clip(
+                np.sum(detected & near) / max(near.sum(), 1), 0.05, 0.99))
     if used.any():
         std = smoothing._observation_std(res.measured_z[used, 0], params)
         innovation = res.filter_z[used] - res.measured_z[used]
@@ -292,6 +318,40 @@ def _confirmed_ids(ids):
     if keep.any():
         _, out[keep] = np.unique(ids[keep], return_inverse=True)
     return out
+
+
+def _detections(path, points, z, valid, params: Params, max_range: float, half_fov: float,
+                chunk: int = 1024):
+    """Predicted ranges (n,) of every (step, landmark) pair in view, and whether detected (n,).
+
+    In view: min_range <= range <= max_range and |bearing| <= half_fov from the smoothed
+    pose. Detected: some valid observation of that step lies within 3 std (squared whitened
+    distance <= 9, about 99 % for 2 degrees of freedom) of the predicted measurement. The
+    test uses positions, not the filter's landmark identities: a landmark the filter deleted
+    and started again is still one tree here, so its misses count against the detector.
+
+    Args: path (T, 3); points (L, 2); z (T, K, 2); valid (T, K).
+    """
+    ranges, hits = [], []
+    for begin in range(0, len(path), chunk):
+        pose = path[begin:begin + chunk]
+        dx = points[None, :, 0] - pose[:, None, 0]
+        dy = points[None, :, 1] - pose[:, None, 1]
+        distance = np.hypot(dx, dy)  # (t, L)
+        bearing = (np.arctan2(dy, dx) - pose[:, None, 2] + np.pi) % (2 * np.pi) - np.pi
+        in_view = ((distance >= float(params.min_range)) & (distance <= max_range)
+                   & (np.abs(bearing) <= half_fov))
+        std = smoothing._observation_std(distance.reshape(-1), params).reshape(
+            distance.shape + (2,))
+        obs = z[begin:begin + chunk]  # (t, K, 2)
+        d_range = (obs[:, :, None, 0] - distance[:, None, :]) / std[:, None, :, 0]
+        d_bearing = ((obs[:, :, None, 1] - bearing[:, None, :] + np.pi) % (2 * np.pi)
+                     - np.pi) / std[:, None, :, 1]
+        close = (d_range**2 + d_bearing**2 <= 9.0) & valid[begin:begin + chunk, :, None]
+        detected = np.any(close, axis=1)  # (t, L)
+        ranges.append(distance[in_view])
+        hits.append(detected[in_view])
+    return np.concatenate(ranges), np.concatenate(hits)
 
 
 def _with_values(params: Params, values: dict) -> Params:

@@ -161,6 +161,9 @@ class Params(NamedTuple):
         no observation matches them (no existence penalty), though they still match and
         update up to ``max_range``. For detectors that find far trunks only now and then;
         default +inf (every matchable landmark inside the detection horizon can be missed).
+      miss_bearing: the sensor's half field of view [rad]: landmarks predicted at
+        |bearing| > miss_bearing are not counted as missed (a camera sees ~±30 degrees; a
+        forward-facing lidar ±90). They still match and update. Default pi (all round).
     Association and map management:
       association_gate: squared Mahalanobis distance above which a pair is never formed.
         Default 25 (5 sigma), wider than the chi-square 99% quantile 9.21 because the
@@ -203,6 +206,7 @@ class Params(NamedTuple):
     max_range: jnp.ndarray
     min_range: jnp.ndarray
     miss_range: jnp.ndarray
+    miss_bearing: jnp.ndarray
     association_gate: jnp.ndarray
     new_landmark_log_offset: jnp.ndarray
     detection_probability: jnp.ndarray
@@ -249,6 +253,7 @@ def default_params(config: FilterConfig | None = None, dtype=jnp.float32, **over
         max_range=20.0,
         min_range=0.1,
         miss_range=float("inf"),
+        miss_bearing=float(np.pi),
         association_gate=gate,
         new_landmark_log_offset=0.0,
         detection_probability=0.9,

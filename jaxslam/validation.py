@@ -46,6 +46,7 @@ _RULES = {
     "max_range": "positive",
     "min_range": "nonneg",
     "miss_range": "nonneg_or_inf",
+    "miss_bearing": "positive",
     "association_gate": "positive",
     "new_landmark_log_offset": "finite",
     "detection_probability": "open_low_unit",

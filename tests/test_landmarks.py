@@ -295,3 +295,24 @@ def test_birth_goes_to_first_free_slot_through_step(steps):
     np.testing.assert_array_equal(np.asarray(new_state.particles.observation_count[0, [1, 3]]),
                                   [1, 1])
     assert int(info.num_dropped_births[0]) == 0
+
+
+def test_landmarks_outside_the_field_of_view_are_not_missed():
+    # A landmark behind the robot (bearing pi) is matchable but not expected with a +-0.6 rad
+    # field of view; ahead (bearing 0) it is expected either way.
+    from jaxslam.ekf import predict_measurements
+    from jaxslam.landmarks import visibility
+
+    params = default_params(miss_bearing=0.6)
+    pose = jnp.zeros(3)
+    mean = jnp.array([[5.0, 0.0], [-5.0, 0.0]])
+    cov = jnp.tile(jnp.array([0.01, 0.0, 0.01]), (2, 1))
+    predicted = predict_measurements(pose, mean, cov, params)
+    z = jnp.zeros((1, 2))
+    valid = jnp.zeros(1, bool)
+    vis = visibility(z, valid, jnp.ones(2, bool), predicted, jnp.full((1, 2), jnp.inf),
+                     params, "hard")
+    np.testing.assert_array_equal(np.asarray(vis.expected), [True, False])
+    wide = visibility(z, valid, jnp.ones(2, bool), predicted, jnp.full((1, 2), jnp.inf),
+                      default_params(), "hard")
+    np.testing.assert_array_equal(np.asarray(wide.expected), [True, True])

@@ -53,6 +53,9 @@ BAD = [
     ("miss_range", NAN, {}),
     ("miss_range", -1.0, {}),
     ("miss_range", -INF, {}),
+    ("miss_bearing", 0.0, {}),
+    ("miss_bearing", NAN, {}),
+    ("miss_bearing", INF, {}),
     # association and map management
     ("association_gate", NAN, {}),
     ("association_gate", 0.0, {}),
