@@ -123,6 +123,10 @@ def main():
         for png in sorted(source.glob("*.png")):
             shutil.copy(png, target / png.name)
             lines += [f"![{study} {png.stem}](results/{study}/{png.name})", ""]
+    # Hand-written sections (experiments whose output is a few lines of text, each file
+    # naming its command) follow the generated ones.
+    for page in sorted((docs / "results").glob("*.md")):
+        lines += page.read_text().split("\n") + [""]
     (docs / "results.md").write_text("\n".join(lines))
     print(f"wrote {docs / 'results.md'}")
 

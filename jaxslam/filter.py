@@ -381,6 +381,12 @@ def _propose(config, key, params, particles: Particles, control, obs, ratio):
     motion = config.motion_model
     motion_draw = jax.vmap(lambda k, pose: sample_motion(k, pose, control, params, motion))(
         jax.random.split(key_motion, num), particles.pose)
+    if config.anchor_empty_map:
+        # A particle with no landmark yet: nothing observed can ever tell its pose error
+        # from the map's frame, so it takes the motion mean (the map frame is that pose).
+        mean = jax.vmap(lambda pose: predict_pose(pose, control, params, motion))(
+            particles.pose)
+        motion_draw = jnp.where(jnp.any(particles.active, axis=1)[:, None], motion_draw, mean)
     if config.proposal == "motion":
         found = jax.vmap(lambda particle, pose: _associate(config, params, particle, pose, obs))(
             particles, motion_draw)
@@ -388,17 +394,56 @@ def _propose(config, key, params, particles: Particles, control, obs, ratio):
 
     def one(k, particle, motion_sample):
         x_hat = predict_pose(particle.pose, control, params, motion)
-        pose_cov = proposal.motion_pose_covariance(particle.pose, control, params, motion)
-        found = _associate(config, params, particle, x_hat, obs,
-                           pose_cov if config.match_pose_uncertainty else None)
-        gaussian = proposal.observation_proposal(x_hat, pose_cov, obs.z, found.local_match,
-                                                 found.predicted)
-        pose, used_obs = proposal.mixture_sample(k, motion_sample, gaussian, ratio)
+        if config.burst_proposal:
+            gaussian, found = _burst_pieces(config, params, particle, x_hat, control, obs)
+        else:
+            pose_cov = proposal.motion_pose_covariance(particle.pose, control, params, motion)
+            found = _associate(config, params, particle, x_hat, obs,
+                               pose_cov if config.match_pose_uncertainty else None)
+            gaussian = proposal.observation_proposal(x_hat, pose_cov, obs.z,
+                                                     found.local_match, found.predicted)
+        pose, used_obs, piece = proposal.mixture_sample(k, motion_sample, gaussian, ratio)
+        if config.burst_proposal:
+            found = jax.tree.map(lambda *leaves: jnp.stack(leaves)[piece], *found)
         correction = proposal.mixture_log_correction(particle.pose, pose, control, params,
                                                      motion, gaussian, ratio)
+        # The update and the weight use the association at the pose they are evaluated at:
+        # a motion draw is matched at its own pose, exactly as the motion proposal does (so
+        # phi = 0 is the motion proposal), and with ``associate_at_sample`` an observation
+        # draw is matched again at its sample too (the association at x_hat only shaped q).
+        again = ~used_obs | config.associate_at_sample
+        at_sample = _associate(config, params, particle, pose, obs)
+        found = jax.tree.map(lambda a, b: jnp.where(again, a, b), at_sample, found)
         return pose, found, correction, used_obs
 
     return jax.vmap(one)(jax.random.split(key_mixture, num), particles, motion_draw)
+
+
+def _burst_pieces(config, params, particle: Particles, x_hat, control, obs):
+    """The two-piece proposal of a bursty motion prior (``FilterConfig.burst_proposal``).
+
+    The prior (1 - eps) N(x_hat, Sigma) + eps N(x_hat, kappa^2 Sigma) gives two FastSLAM 2.0
+    Gaussians, each with its own association at x_hat (the burst piece's wider matching
+    covariance finds the landmarks a burst moved), mixed by prior mass x evidence
+    (``proposal.piece_mixture``; an observation a piece leaves unmatched is credited the
+    new-landmark likelihood). Returns (``PieceMixture``, (core, burst) ``_Association``).
+    """
+    motion = config.motion_model
+    pieces, founds = [], []
+    for factor in (1.0, params.motion_outlier_scale**2):
+        cov = proposal.motion_pose_covariance(particle.pose, control, params, motion, factor)
+        found = _associate(config, params, particle, x_hat, obs,
+                           cov if config.match_pose_uncertainty else None)
+        gaussian = proposal.observation_proposal(x_hat, cov, obs.z, found.local_match,
+                                                 found.predicted)
+        unexplained = jnp.sum(jnp.where(obs.valid & (found.match < 0),
+                                        ekf.unexplained_log_likelihood(obs.z[:, 0], params),
+                                        0.0))
+        pieces.append(gaussian._replace(log_evidence=gaussian.log_evidence + unexplained))
+        founds.append(found)
+    eps = params.motion_outlier_probability
+    log_prior = jnp.stack([jnp.log1p(-eps), jnp.log(jnp.maximum(eps, 0.0))])
+    return proposal.piece_mixture(pieces, log_prior), tuple(founds)
 
 
 def _mixture_ratio(config, params, state):

@@ -16,6 +16,13 @@ Degeneracy: when trans is near zero, rot1 is the angle of pose jitter (anything 
 and the b2 |rot1| term explodes. Below ``params.min_translation`` rot1 is set to 0 and the
 whole turn goes to rot2.
 
+Bursts: wheel slip and commanded-velocity odometry err in bursts that a Gaussian with Eq. (1)'s
+std calls impossible. With ``params.motion_outlier_probability`` eps > 0 the move noise is the
+scale mixture (1 - eps) N(0, sigma^2) + eps N(0, kappa^2 sigma^2), kappa =
+``motion_outlier_scale``: the sampler draws a burst with probability eps, the density is the
+mixture's, and the FastSLAM 2.0 proposal uses its covariance E[s^2] sigma^2. eps = 0 (the
+default) is Eq. (1) unchanged.
+
 The velocity (v, omega, dt) and Ackermann (v_encoder, steering, dt) controls are integrated
 exactly (constant rates over dt) into a relative pose, decomposed into (rot1, trans, rot2), and
 the same Eq. (1) noise is applied. So all three share one sampler and one density.
@@ -76,10 +83,25 @@ def odometry_std(odometry, params: Params):
     )
 
 
+def burst_variance_factor(params: Params):
+    """E[s^2] of the burst scale mixture: (1 - eps) + eps kappa^2 (module docstring)."""
+    eps = params.motion_outlier_probability
+    return (1.0 - eps) + eps * params.motion_outlier_scale**2
+
+
 def sample_odometry(key, odometry, params: Params):
-    """Draw a true move around the measured ``odometry`` (3,) per Eq. (1). Returns (3,)."""
+    """Draw a true move around the measured ``odometry`` (3,) per Eq. (1). Returns (3,).
+
+    With ``params.motion_outlier_probability`` eps > 0 the whole move's std is multiplied by
+    ``motion_outlier_scale`` kappa with probability eps (a burst). The Gaussian draw uses
+    ``key`` itself and the burst a key folded from it, so eps = 0 gives the plain Eq. (1)
+    draw bit for bit.
+    """
     noise = jax.random.normal(key, odometry.shape, odometry.dtype)
-    sample = odometry + noise * odometry_std(odometry, params)
+    burst = jax.random.uniform(jax.random.fold_in(key, 1), odometry.shape[:-1] + (1,),
+                               odometry.dtype) < params.motion_outlier_probability
+    scale = jnp.where(burst, params.motion_outlier_scale, 1.0).astype(odometry.dtype)
+    sample = odometry + noise * scale * odometry_std(odometry, params)
     return sample.at[..., 0].set(wrap_angle(sample[..., 0])).at[..., 2].set(
         wrap_angle(sample[..., 2]))
 
@@ -141,11 +163,23 @@ def predict_pose(pose, control, params: Params, motion_model: str = "odometry"):
 
 
 def odometry_log_density(true_odometry, odometry, params: Params):
-    """log N(true_odometry; odometry, diag(std(odometry)^2)) over (rot1, trans, rot2), (...,)."""
+    """log p(true_odometry | odometry) over (rot1, trans, rot2), (...,).
+
+    log[(1 - eps) N(d; 0, diag(sigma^2)) + eps N(d; 0, diag(kappa^2 sigma^2))], d the wrapped
+    difference, sigma = ``odometry_std(odometry)`` (Eq. (1)), eps and kappa the burst
+    probability and scale; for eps = 0 exactly the Eq. (1) Gaussian.
+    """
     std = odometry_std(odometry, params)
     diff = true_odometry - odometry
     diff = diff.at[..., 0].set(wrap_angle(diff[..., 0])).at[..., 2].set(wrap_angle(diff[..., 2]))
-    return jnp.sum(-0.5 * (diff / std) ** 2 - jnp.log(std) - 0.5 * LOG_2PI, axis=-1)
+    core = jnp.sum(-0.5 * (diff / std) ** 2 - jnp.log(std) - 0.5 * LOG_2PI, axis=-1)
+    eps = params.motion_outlier_probability
+    kappa = params.motion_outlier_scale
+    wide = jnp.sum(-0.5 * (diff / (kappa * std)) ** 2 - jnp.log(kappa * std) - 0.5 * LOG_2PI,
+                   axis=-1)
+    log_eps = jnp.log(jnp.maximum(eps, 1e-30))
+    mixed = jnp.logaddexp(jnp.log1p(-eps) + core, log_eps + wide)
+    return jnp.where(eps > 0.0, mixed, core)
 
 
 def motion_log_density(pose_prev, pose_next, control, params: Params,

@@ -31,39 +31,71 @@ import jax.numpy as jnp
 
 from jaxslam.ekf import PredictedMeasurement
 from jaxslam.geometry import LOG_2PI, wrap_angle
-from jaxslam.motion import control_to_odometry, motion_log_density, odometry_std, predict_pose
+from jaxslam.motion import (burst_variance_factor, control_to_odometry, motion_log_density,
+                            odometry_std, predict_pose)
 from jaxslam.types import Params
 
-_POSE_JITTER = 1e-8
+# Sigma_u is singular for a pure turn and badly conditioned for a short move; the jitter added
+# to its diagonal is relative to its largest variance (so it stays below the lateral variance
+# trans^2 sigma_rot1^2 of any move over ~3 mm in float32) plus an absolute floor.
+_POSE_JITTER_RELATIVE = 1e-5
+_POSE_JITTER_ABSOLUTE = 1e-14
 
 
 class ObservationProposal(NamedTuple):
     """Gaussian proposal over the pose of one particle.
 
     mean: (3,); chol: (3, 3) lower Cholesky factor of the covariance;
-    has_match: () bool, False means fall back to the motion model.
+    has_match: () bool, False means fall back to the motion model;
+    log_evidence: () log N(nu; 0, Hx Sigma_u Hx^T + S) of the matched observations, the
+      linearised marginal likelihood of this prior piece (``piece_mixture``).
     """
 
     mean: jnp.ndarray
     chol: jnp.ndarray
     has_match: jnp.ndarray
+    log_evidence: jnp.ndarray = None
 
 
-def motion_pose_covariance(pose, control, params: Params, motion_model: str):
+class PieceMixture(NamedTuple):
+    """A mixture of J Gaussian pose proposals (one per piece of the motion prior).
+
+    means: (J, 3); chols: (J, 3, 3); log_weights: (J,) normalised (logsumexp 0);
+    has_match: () bool, some piece matched an observation.
+    """
+
+    means: jnp.ndarray
+    chols: jnp.ndarray
+    log_weights: jnp.ndarray
+    has_match: jnp.ndarray
+
+
+def motion_pose_covariance(pose, control, params: Params, motion_model: str,
+                           variance_factor=None):
     """Sigma_u = J diag(sigma^2) J^T (3, 3): Eq. (1) noise mapped to the pose at x_hat.
+
+    With bursts (``motion.burst_variance_factor``) sigma^2 is the mixture's E[s^2] sigma^2;
+    ``variance_factor`` replaces that factor (1: the core piece, kappa^2: the burst piece).
 
     J = d pose' / d (rot1, trans, rot2) = [[-t sin h, cos h, 0], [t cos h, sin h, 0],
     [1, 0, 1]], h = theta + rot1.
     """
     odometry = control_to_odometry(control, params, motion_model)
-    variance = odometry_std(odometry, params) ** 2
+    factor = burst_variance_factor(params) if variance_factor is None else variance_factor
+    variance = odometry_std(odometry, params) ** 2 * factor
     heading = pose[2] + odometry[0]
     trans = odometry[1]
     zero = jnp.zeros_like(trans)
     jac = jnp.array([[-trans * jnp.sin(heading), jnp.cos(heading), zero],
                      [trans * jnp.cos(heading), jnp.sin(heading), zero],
                      [1.0 + zero, zero, 1.0 + zero]])
-    return (jac * variance[None, :]) @ jac.T + _POSE_JITTER * jnp.eye(3, dtype=pose.dtype)
+    cov = (jac * variance[None, :]) @ jac.T
+    return cov + pose_jitter(cov) * jnp.eye(3, dtype=pose.dtype)
+
+
+def pose_jitter(cov):
+    """The diagonal jitter () of a motion covariance (3, 3): relative 1e-5, floor 1e-14."""
+    return _POSE_JITTER_RELATIVE * jnp.max(jnp.diag(cov)) + _POSE_JITTER_ABSOLUTE
 
 
 def observation_proposal(predicted_pose, pose_cov, z, match, predicted: PredictedMeasurement):
@@ -94,7 +126,49 @@ def observation_proposal(predicted_pose, pose_cov, z, match, predicted: Predicte
     cov = 0.5 * (cov + cov.T)
     mean = predicted_pose + cov @ info_vec
     mean = mean.at[2].set(wrap_angle(mean[2]))
-    return ObservationProposal(mean, jnp.linalg.cholesky(cov), jnp.any(matched))
+    # log N(nu; 0, Hx Sigma_u Hx^T + S) by Woodbury and the determinant lemma:
+    # nu^T (.)^-1 nu = nu^T S^-1 nu - b^T Lambda^-1 b, log det (.) = log det S
+    # + log det Sigma_u + log det Lambda, with b = Hx^T S^-1 nu and Lambda the precision.
+    quad = jnp.einsum("ka,kab,kb->", nu, s_inv, nu) - info_vec @ cov @ info_vec
+    log_det = (jnp.sum(jnp.where(matched, p.log_det, 0.0)) + jnp.linalg.slogdet(pose_cov)[1]
+               + jnp.linalg.slogdet(precision)[1])
+    log_evidence = -0.5 * (quad + log_det) - jnp.sum(weight) * LOG_2PI
+    return ObservationProposal(mean, jnp.linalg.cholesky(cov), jnp.any(matched), log_evidence)
+
+
+def piece_mixture(pieces: list, log_prior) -> PieceMixture:
+    """Proposals of the J motion-prior pieces mixed by prior mass x linearised evidence.
+
+    For a motion prior sum_j pi_j N(x; x_hat, Sigma_j), the linearised optimal proposal is
+    sum_j w_j N(x; mu_j, C_j) with w_j proportional to pi_j p_j(z), p_j(z) each piece's
+    ``log_evidence`` (the observations it left unmatched credited as a new landmark's, so
+    pieces with different matches compare; that credit is in ``log_evidence`` already when
+    the caller adds it).
+
+    Args:
+      pieces: J ``ObservationProposal`` (their ``log_evidence`` set).
+      log_prior: (J,) log pi_j (-inf for a piece of mass 0).
+    """
+    logits = jnp.asarray(log_prior) + jnp.stack([q.log_evidence for q in pieces])
+    logits = jnp.where(jnp.stack([q.has_match for q in pieces]), logits, jnp.asarray(log_prior))
+    return PieceMixture(jnp.stack([q.mean for q in pieces]), jnp.stack([q.chol for q in pieces]),
+                        jax.nn.log_softmax(logits),
+                        jnp.any(jnp.stack([q.has_match for q in pieces])))
+
+
+def piece_mixture_log_density(pose, mixture: PieceMixture):
+    """log sum_j w_j N(pose; mu_j, C_j), heading differences wrapped. (3,) -> ()."""
+    densities = jax.vmap(lambda mean, chol: gaussian_pose_log_density(
+        pose, ObservationProposal(mean, chol, jnp.asarray(True))))(mixture.means, mixture.chols)
+    return jax.scipy.special.logsumexp(mixture.log_weights + densities)
+
+
+def sample_piece_mixture(key, mixture: PieceMixture):
+    """x ~ sum_j w_j N(mu_j, C_j). Returns (pose (3,), piece () int32)."""
+    key_piece, key_draw = jax.random.split(key)
+    piece = jax.random.categorical(key_piece, mixture.log_weights)
+    return sample_gaussian_pose(key_draw, ObservationProposal(
+        mixture.means[piece], mixture.chols[piece], jnp.asarray(True))), piece
 
 
 def gaussian_pose_log_density(pose, proposal: ObservationProposal):
@@ -112,23 +186,41 @@ def sample_gaussian_pose(key, proposal: ObservationProposal):
     return draw.at[2].set(wrap_angle(draw[2]))
 
 
-def mixture_sample(key, motion_sample, proposal: ObservationProposal, ratio):
+def _piece(proposal, key):
+    """The Gaussian to draw from: ``proposal`` itself, or one piece of a ``PieceMixture``
+    chosen by its weights with a key folded from ``key`` (so one piece draws as before)."""
+    if not isinstance(proposal, PieceMixture):
+        return proposal, jnp.zeros((), jnp.int32)
+    piece = jax.random.categorical(jax.random.fold_in(key, 1), proposal.log_weights)
+    return ObservationProposal(proposal.means[piece], proposal.chols[piece],
+                               proposal.has_match), piece.astype(jnp.int32)
+
+
+def mixture_sample(key, motion_sample, proposal, ratio):
     """Pick q_obs with probability ``ratio`` (and a match), else the motion sample.
 
-    Returns (pose (3,), used_observation () bool).
+    ``proposal``: an ``ObservationProposal`` or a ``PieceMixture``.
+    Returns (pose (3,), used_observation () bool, piece () int32 drawn from).
     """
     key_choice, key_draw = jax.random.split(key)
     use_obs = (jax.random.uniform(key_choice, (), motion_sample.dtype) < ratio)
     use_obs = use_obs & proposal.has_match
-    pose = jnp.where(use_obs, sample_gaussian_pose(key_draw, proposal), motion_sample)
-    return pose, use_obs
+    gaussian, piece = _piece(proposal, key_draw)
+    pose = jnp.where(use_obs, sample_gaussian_pose(key_draw, gaussian), motion_sample)
+    return pose, use_obs, piece
 
 
 def mixture_log_correction(pose_prev, pose, control, params: Params, motion_model: str,
-                           proposal: ObservationProposal, ratio):
-    """log p_motion(x) - log((1 - phi) p_motion(x) + phi q_obs(x)); 0 without a match."""
+                           proposal, ratio):
+    """log p_motion(x) - log((1 - phi) p_motion(x) + phi q_obs(x)); 0 without a match.
+
+    q_obs is the Gaussian of an ``ObservationProposal`` or the mixture of a ``PieceMixture``.
+    """
     log_motion = motion_log_density(pose_prev, pose, control, params, motion_model)
-    log_obs = gaussian_pose_log_density(pose, proposal)
+    if isinstance(proposal, PieceMixture):
+        log_obs = piece_mixture_log_density(pose, proposal)
+    else:
+        log_obs = gaussian_pose_log_density(pose, proposal)
     ratio = jnp.clip(ratio, 0.0, 1.0)
     log_mix = jnp.logaddexp(jnp.log1p(-ratio) + log_motion,
                             jnp.log(jnp.maximum(ratio, 1e-30)) + log_obs)
@@ -154,6 +246,9 @@ def update_likelihood_averages(fast, slow, mean_log_likelihood, has_data, first_
 
 __all__ = [
     "ObservationProposal",
+    "PieceMixture",
+    "piece_mixture",
+    "piece_mixture_log_density",
     "adaptive_ratio",
     "gaussian_pose_log_density",
     "mixture_log_correction",

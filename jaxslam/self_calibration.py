@@ -23,7 +23,10 @@ estimation use, with the particle filter as the E-step's data associator:
            (heading, translation, range, bearing); the fitted shape is rescaled so that its
            mean variance over the group's samples equals that estimate. Without it, EM on MAP
            residuals shrinks the noise every iteration;
-         * tails: the std is then widened, where needed, until 95 % of the group's residuals
+         * bursts: a two-scale mixture fitted to the whitened move residuals by EM
+           (``fit_bursts``) sets ``motion_outlier_probability`` and ``motion_outlier_scale``
+           when it beats one Gaussian by BIC (wheel slip, commanded-velocity odometry);
+         * tails: otherwise the std is widened, where needed, until 95 % of the group's residuals
            lie within its 95 % interval (``_tail_factor``; 1 for Gaussian errors). Real
            sensors are heavy-tailed, and a std fitted to the core alone makes the filter
            split tail observations into new landmarks, which leaves them out of the next fit:
@@ -188,7 +191,8 @@ def _tail_factor(errors, std, quantile: float = TAIL_QUANTILE) -> float:
 
 
 def _motion_update(res: _Residuals, params: Params, scales: smoothing.NoiseScales):
-    """New (rot1, trans, rot2) coefficients (3, 3), or None when there are too few moves."""
+    """(coefficients (3, 3) of rot1, trans, rot2, burst probability, burst scale), or None
+    when there are too few moves. Bursts (``fit_bursts``) or, without them, the tail factor."""
     moving = np.all(np.isfinite(res.true_moves), axis=1)
     if int(moving.sum()) < MIN_MOVES:
         return None
@@ -215,12 +219,57 @@ def _motion_update(res: _Residuals, params: Params, scales: smoothing.NoiseScale
                                          jnp.asarray(res.measured_moves[moving]))
     errors = np.asarray(errors, np.float64)
     std = [features[i] @ rows[i] for i in range(3)]
-    heading_tail = _tail_factor(errors[:, 0] + errors[:, 2], np.hypot(std[0], std[2]))
-    rows = [rows[0] * np.sqrt(heading_tail), rows[1] * np.sqrt(_tail_factor(errors[:, 1],
-                                                                            std[1])),
-            rows[2] * np.sqrt(heading_tail)]
+    heading_error, heading_std = errors[:, 0] + errors[:, 2], np.hypot(std[0], std[2])
+    white = np.stack([heading_error / np.maximum(heading_std, STD_FLOOR),
+                      errors[:, 1] / np.maximum(std[1], STD_FLOOR)], 1)
+    bursts = fit_bursts(white)
+    if bursts is not None:
+        eps, core, kappa = bursts
+        rows = [r * core for r in rows]
+    else:
+        eps, kappa = 0.0, float(params.motion_outlier_scale)
+        heading_tail = _tail_factor(heading_error, heading_std)
+        rows = [rows[0] * np.sqrt(heading_tail),
+                rows[1] * np.sqrt(_tail_factor(errors[:, 1], std[1])),
+                rows[2] * np.sqrt(heading_tail)]
     # A positive constant keeps every move's covariance invertible (smoothing, proposals).
-    return np.stack([np.concatenate([r[:2], [max(r[2], STD_FLOOR)]]) for r in rows])
+    rows = np.stack([np.concatenate([r[:2], [max(r[2], STD_FLOOR)]]) for r in rows])
+    return rows, eps, kappa
+
+
+def fit_bursts(white, iterations: int = 50, min_share: float = 0.01, min_ratio: float = 2.0):
+    """EM for the burst scale mixture of the whitened move residuals; None when not needed.
+
+    Model: r_t (S, d) ~ (1 - eps) N(0, a^2 I) + eps N(0, b^2 I). E-step: each move's
+    responsibility gamma_t of the burst component; M-step: eps = mean(gamma),
+    a^2 = sum (1 - gamma) |r|^2 / (d sum (1 - gamma)), b^2 likewise with gamma. The mixture
+    is kept when eps >= ``min_share``, b / a >= ``min_ratio`` and it beats one Gaussian by
+    BIC (two more parameters: log-likelihood gain > log S). Returns (eps, a, b / a).
+    """
+    white = np.asarray(white, np.float64)
+    count, dim = white.shape
+    if count < MIN_MOVES:
+        return None
+    norm2 = np.sum(white**2, axis=1)
+
+    def log_normal(scale):
+        return -dim * np.log(scale) - 0.5 * norm2 / scale**2 - 0.5 * dim * np.log(2 * np.pi)
+
+    single = np.sqrt(np.mean(norm2) / dim)
+    eps, a, b = 0.1, 0.7 * single, 3.0 * single
+    for _ in range(iterations):
+        log_core = np.log1p(-eps) + log_normal(a)
+        log_burst = np.log(eps) + log_normal(b)
+        gamma = np.exp(log_burst - np.logaddexp(log_core, log_burst))
+        eps = float(np.clip(np.mean(gamma), 1e-4, 0.5))
+        a = float(np.sqrt(np.sum((1 - gamma) * norm2) / (dim * max(np.sum(1 - gamma), 1e-9))))
+        b = float(np.sqrt(np.sum(gamma * norm2) / (dim * max(np.sum(gamma), 1e-9))))
+        a, b = max(a, 1e-6), max(b, 1e-6)
+    gain = (np.sum(np.logaddexp(np.log1p(-eps) + log_normal(a), np.log(eps) + log_normal(b)))
+            - np.sum(log_normal(single)))
+    if eps < min_share or b / a < min_ratio or gain <= np.log(count):
+        return None
+    return eps, a, b / a
 
 
 def _observation_update(res: _Residuals, params: Params, scales: smoothing.NoiseScales,
@@ -454,7 +503,9 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         update = {}
         motion = _motion_update(res, params, smoothed.noise_scales)
         if motion is not None:
-            update.update(rot1_noise=motion[0], trans_noise=motion[1], rot2_noise=motion[2])
+            rows, eps, kappa = motion
+            update.update(rot1_noise=rows[0], trans_noise=rows[1], rot2_noise=rows[2],
+                          motion_outlier_probability=eps, motion_outlier_scale=kappa)
             samples["heading"] = samples["translation"] = steps
         obs = _observation_update(res, params, smoothed.noise_scales, used)
         if obs is not None:

@@ -77,6 +77,19 @@ class FilterConfig:
         Montemerlo et al. 2003), so an accurate sensor still matches when x_hat is off by
         the motion noise. False matches with S alone. Ignored by the motion proposal (each
         particle matches at its own sampled pose).
+      anchor_empty_map: a particle whose map is still empty moves by the motion mean
+        instead of a draw: no later observation can tell its pose error from the frame of
+        the map it will build, so a draw only adds an error that rotates the whole map (the
+        floor of every run's final error). False samples as usual.
+      associate_at_sample: with the observation or mixture proposal, a particle drawn from
+        the observation proposal is matched again at its drawn pose before the update and
+        the weight (the match at x_hat only shapes the proposal). Particles drawn from the
+        motion model are always matched at their own pose. Costs a second association.
+      burst_proposal: with the observation or mixture proposal and bursts in the motion
+        noise (``Params.motion_outlier_probability`` > 0), draw from the two FastSLAM 2.0
+        Gaussians of the prior's core and burst pieces, mixed by prior mass x evidence
+        (``filter._burst_pieces``). False uses one Gaussian with the mixture's covariance.
+        Costs a second association and proposal per particle.
     """
 
     num_particles: int = 100
@@ -91,6 +104,9 @@ class FilterConfig:
     max_match_rounds: int = 0
     association_window: int = 0
     match_pose_uncertainty: bool = False
+    anchor_empty_map: bool = False
+    associate_at_sample: bool = False
+    burst_proposal: bool = False
 
     def __post_init__(self):
         for name in ("num_particles", "max_landmarks", "max_obs"):
@@ -106,10 +122,11 @@ class FilterConfig:
             raise ValueError(
                 f"FilterConfig.association_window={self.association_window!r} is invalid; "
                 "expected an integer >= 0 (0 means every landmark slot)")
-        if not isinstance(self.match_pose_uncertainty, (bool, np.bool_)):
-            raise ValueError(
-                f"FilterConfig.match_pose_uncertainty={self.match_pose_uncertainty!r} is "
-                "invalid; expected True or False")
+        for name in ("match_pose_uncertainty", "anchor_empty_map", "associate_at_sample",
+                     "burst_proposal"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"FilterConfig.{name}={getattr(self, name)!r} is invalid; "
+                                 "expected True or False")
         _check_choice("motion_model", self.motion_model, MOTION_MODELS)
         _check_choice("association", self.association, ASSOCIATIONS)
         _check_choice("proposal", self.proposal, PROPOSALS)
@@ -134,6 +151,8 @@ class Params(NamedTuple):
       trans_noise: (3,) coefficients of the translation std [m/m, m/rad, m]; its rotation term
         multiplies |rot1| + |rot2|. Table 1 row 2.
       rot2_noise: (3,) coefficients of the second rotation's std. Table 1 row 3.
+      motion_outlier_probability / motion_outlier_scale: bursts (``motion.py``): with
+        probability eps a move's noise std is kappa times Eq. (1)'s. Default 0 / 4.
       min_translation: below this translation [m] the move is a pure turn: rot1 = 0 and the
         whole heading change goes to rot2 (avoids the rot1 degeneracy of a stationary robot).
         Default 1 cm: above typical pose jitter of a parked robot (millimetres).
@@ -193,6 +212,8 @@ class Params(NamedTuple):
     rot1_noise: jnp.ndarray
     trans_noise: jnp.ndarray
     rot2_noise: jnp.ndarray
+    motion_outlier_probability: jnp.ndarray
+    motion_outlier_scale: jnp.ndarray
     min_translation: jnp.ndarray
     wheelbase: jnp.ndarray
     encoder_offset: jnp.ndarray
@@ -240,6 +261,8 @@ def default_params(config: FilterConfig | None = None, dtype=jnp.float32, **over
         rot1_noise=(0.0, 0.06, 0.0002),
         trans_noise=(0.02, 0.006, 0.00003),
         rot2_noise=(0.0, 0.06, 0.0003),
+        motion_outlier_probability=0.0,
+        motion_outlier_scale=4.0,
         min_translation=0.01,
         wheelbase=2.83,
         encoder_offset=0.76,

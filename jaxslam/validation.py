@@ -37,6 +37,8 @@ _SHAPE_MEANING = {
 # ([0, 1)), "nonneg_or_inf" (>= 0, +inf allowed).
 _RULES = {
     "rot1_noise": "nonneg", "trans_noise": "nonneg", "rot2_noise": "nonneg",
+    "motion_outlier_probability": "unit_open_high",
+    "motion_outlier_scale": "positive",
     "min_translation": "positive",
     "wheelbase": "positive",
     "encoder_offset": "finite", "laser_forward": "finite", "laser_left": "finite",

@@ -284,3 +284,89 @@ def test_motion_models_jit_vmap(params):
 def test_unknown_motion_model_raises(params):
     with pytest.raises(ValueError, match="motion_model"):
         motion.control_to_odometry(jnp.zeros(3), params, "bicycle")
+
+
+# ---------------------------------------------------------------------------------------------
+# Bursts: the scale mixture (1 - eps) N(0, sigma^2) + eps N(0, kappa^2 sigma^2)
+
+
+def _np_burst_log_density(true_odometry, odometry, std, eps, kappa):
+    """float64 reference: log of the two-Gaussian mixture over the 3 components."""
+    diff = np.asarray(true_odometry, np.float64) - np.asarray(odometry, np.float64)
+    diff[..., [0, 2]] = (diff[..., [0, 2]] + np.pi) % (2 * np.pi) - np.pi
+
+    def log_normal(scale):
+        return np.sum(-0.5 * (diff / scale) ** 2 - np.log(scale) - 0.5 * np.log(2 * np.pi), -1)
+
+    return np.logaddexp(np.log1p(-eps) + log_normal(std), np.log(eps) + log_normal(kappa * std))
+
+
+@pytest.mark.parametrize("jit", [False, True])
+def test_burst_density_matches_numpy(jit):
+    from jaxslam.motion import odometry_log_density, odometry_std
+
+    params = default_params(motion_outlier_probability=0.1, motion_outlier_scale=4.0)
+    rng = np.random.default_rng(3)
+    odometry = jnp.asarray(rng.normal(0, 0.3, (64, 3)), jnp.float32)
+    true = odometry + jnp.asarray(rng.normal(0, 0.05, (64, 3)), jnp.float32)
+    fn = jax.jit(odometry_log_density) if jit else odometry_log_density
+    got = np.asarray(fn(true, odometry, params))
+    std = np.asarray(odometry_std(odometry, params), np.float64)
+    want = _np_burst_log_density(true, odometry, std, 0.1, 4.0)
+    # float32 inputs: the log-density of a 3-vector agrees to ~1e-4 relative.
+    np.testing.assert_allclose(got, want, rtol=2e-4, atol=2e-3)
+    # Under vmap over stacked params (a sweep over eps) the same.
+    stacked = jax.tree.map(lambda a, b: jnp.stack([a, b]), params,
+                           params._replace(motion_outlier_probability=jnp.float32(0.3)))
+    swept = jax.vmap(odometry_log_density, in_axes=(None, None, 0))(true, odometry, stacked)
+    np.testing.assert_allclose(np.asarray(swept[1]),
+                               _np_burst_log_density(true, odometry, std, 0.3, 4.0),
+                               rtol=2e-4, atol=2e-3)
+
+
+def test_no_bursts_is_eq1_bit_for_bit():
+    from jaxslam.motion import odometry_log_density, odometry_std, sample_odometry
+
+    params = default_params()  # eps = 0
+    odometry = jnp.array([0.1, 0.5, -0.2])
+    key = jax.random.PRNGKey(5)
+    plain = odometry + jax.random.normal(key, (3,)) * odometry_std(odometry, params)
+    drawn = sample_odometry(key, odometry, params)
+    np.testing.assert_array_equal(np.asarray(drawn[1]), np.asarray(plain[1]))
+    true = odometry + 0.01
+    std = odometry_std(odometry, params)
+    gaussian = jnp.sum(-0.5 * ((true - odometry) / std) ** 2 - jnp.log(std)
+                       - 0.5 * np.log(2 * np.pi))
+    np.testing.assert_allclose(float(odometry_log_density(true, odometry, params)),
+                               float(gaussian), rtol=1e-6)
+
+
+def test_burst_draws_have_the_mixture_variance():
+    from jaxslam.motion import odometry_std, sample_odometry
+
+    eps, kappa, n = 0.2, 4.0, 20000
+    params = default_params(motion_outlier_probability=eps, motion_outlier_scale=kappa)
+    odometry = jnp.array([0.0, 1.0, 0.0])
+    draws = jax.vmap(lambda k: sample_odometry(k, odometry, params))(
+        jax.random.split(jax.random.PRNGKey(0), n))
+    white = ((np.asarray(draws, np.float64) - np.asarray(odometry, np.float64)[None])
+             / np.asarray(odometry_std(odometry, params), np.float64)[None])
+    var = np.mean(white**2)
+    expected = (1 - eps) + eps * kappa**2  # 4.0
+    # The variance of white^2 for this mixture is E[s^4] 3 - E[s^2]^2 ~ 140; over 3n
+    # components the standard error of the mean is ~0.07: 5 standard errors.
+    assert abs(var - expected) < 0.35, var
+
+
+def test_fit_bursts_recovers_a_mixture_and_rejects_a_gaussian():
+    from jaxslam.self_calibration import fit_bursts
+
+    rng = np.random.default_rng(0)
+    n = 4000
+    burst = rng.uniform(size=n) < 0.1
+    white = rng.normal(size=(n, 2)) * np.where(burst, 5.0, 1.0)[:, None]
+    eps, core, kappa = fit_bursts(white)
+    # 4000 moves, 400 bursts: eps within +-0.03 (about 3 binomial std), kappa within 15 %.
+    assert abs(eps - 0.1) < 0.03 and abs(core - 1.0) < 0.05 and abs(kappa - 5.0) < 0.75
+    assert fit_bursts(rng.normal(size=(n, 2))) is None
+    assert fit_bursts(rng.normal(size=(10, 2))) is None  # too few moves

@@ -54,6 +54,11 @@ BAD = [
     ("miss_range", -1.0, {}),
     ("miss_range", -INF, {}),
     ("miss_bearing", 0.0, {}),
+    ("motion_outlier_probability", 1.0, {}),
+    ("motion_outlier_probability", -0.1, {}),
+    ("motion_outlier_probability", NAN, {}),
+    ("motion_outlier_scale", 0.0, {}),
+    ("motion_outlier_scale", NAN, {}),
     ("miss_bearing", NAN, {}),
     ("miss_bearing", INF, {}),
     # association and map management
