@@ -1,9 +1,11 @@
-"""Monte Carlo studies and sweeps: chunked, seeded, resumable, one compiled call per chunk.
+"""Monte Carlo studies and sweeps: chunked, seeded, resumable, one compiled program per study.
 
 A study is R runs of a simulated scenario under one ``FilterConfig``, optionally over a grid of
 ``Params`` values (a sweep: G conditions). Run i uses ``fold_in(PRNGKey(seed), i)`` for both
 its scenario and its filter, so every condition sees the same forests, paths and noise (common
-random numbers), and results do not depend on the chunk size or the device count.
+random numbers). Every (run, condition) pair goes through one compiled program of fixed width
+``run_width`` (per device), so on one machine type a run's numbers are bit-identical whatever
+the chunk size, the number of runs or conditions, or the device count (``_ChunkRunner``).
 
 Output folder:
   study.toml            the resolved study config (a resumed study must match it)
@@ -116,16 +118,19 @@ def _diameter_error(est, world: RunBatch, threshold):
             count.astype(jnp.int32))
 
 
-def _chunk_fn(config: StudyConfig):
-    """jit(vmap over conditions (vmap over runs)) of ``_run_metrics``."""
+def _group_fn(config: StudyConfig):
+    """jit(vmap over a group of (run, condition) pairs) of ``_run_metrics``.
 
-    def per_run(key, params, controls, observations, world):
+    Arguments: keys, params (leaves with the pair axis first), controls, observations,
+    tree_seen (pair axis first), then truth_pose, tree_centres, tree_radii (shared by every
+    run of a study).
+    """
+
+    def per_pair(key, params, controls, observations, seen, truth_pose, centres, radii):
+        world = RunBatch(None, None, truth_pose, centres, radii, seen)
         return _run_metrics(config, key, params, controls, observations, world)
 
-    world_axes = RunBatch(None, None, None, None, None, 0)
-    over_runs = jax.vmap(per_run, in_axes=(0, None, 0, 0, world_axes))
-    over_conditions = jax.vmap(over_runs, in_axes=(None, 0, None, None, None))
-    return jax.jit(over_conditions)
+    return jax.jit(jax.vmap(per_pair, in_axes=(0, 0, 0, 0, 0, None, None, None)))
 
 
 # --------------------------------------------------------------------------------------------
@@ -160,24 +165,71 @@ def _provenance() -> dict:
                 started=datetime.datetime.now(datetime.timezone.utc).isoformat())
 
 
+def _flatten(data: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _config_differences(old: dict, new: dict) -> list[str]:
+    """"key: folder X, this config Y" for every key whose value differs."""
+    old, new = _flatten(old), _flatten(new)
+    lines = []
+    for key in sorted(set(old) | set(new)):
+        if old.get(key, _MISSING) != new.get(key, _MISSING):
+            show = lambda v: "(absent)" if v is _MISSING else repr(v)  # noqa: E731
+            lines.append(f"{key}: folder {show(old.get(key, _MISSING))}, "
+                         f"this config {show(new.get(key, _MISSING))}")
+    return lines
+
+
+_MISSING = object()
+
+
 def _prepare_out_dir(config: StudyConfig, out_dir: pathlib.Path) -> None:
-    """Create or check the folder: a different study there is an error, never overwritten."""
+    """Create or check the folder: a different study there is an error, never overwritten.
+
+    ``config`` has been validated when it was built (``StudyConfig`` refuses a bad value),
+    so study.toml is only ever written for a config that can run.
+    """
     import tomli_w
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    resolved = tomli_w.dumps(study_config_to_dict(config))
+    resolved_dict = study_config_to_dict(config)
+    resolved = tomli_w.dumps(resolved_dict)
     study_file = out_dir / "study.toml"
     if study_file.exists():
-        if study_file.read_text() != resolved:
-            raise StudyError(
-                f"{study_file} holds a different study config; resume only the same study, or "
-                "choose another output folder")
-    else:
+        text = study_file.read_text()
+        if text != resolved:
+            try:
+                differences = _config_differences(tomllib.loads(text), resolved_dict)
+            except tomllib.TOMLDecodeError as error:
+                differences = [f"(the folder's study.toml is not readable TOML: {error})"]
+            if differences:
+                raise StudyError(_refusal(out_dir, study_file, differences))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if not study_file.exists():
         _atomic_write(study_file, lambda p: p.write_text(resolved))
     for stale in out_dir.glob(".tmp-*"):
         stale.unlink()  # our own half-written file from an interrupted run
     _atomic_write(out_dir / "provenance.toml",
                   lambda p: p.write_text(tomli_w.dumps(_provenance())))
+
+
+def _refusal(out_dir: pathlib.Path, study_file: pathlib.Path, differences: list[str]) -> str:
+    chunks = sorted(out_dir.glob(f"{_CHUNK_PREFIX}*.parquet"))
+    if chunks:
+        start_over = (f"it holds {len(chunks)} finished chunk(s) of that study: resume it with "
+                      f"the config in {study_file}, or choose another output folder (to start "
+                      f"over here, delete {out_dir} first)")
+    else:
+        start_over = (f"it holds no finished chunk yet: delete {study_file} to start this "
+                      "study over here, or choose another output folder")
+    return (f"{study_file} holds a different study config; resume only the same study. "
+            f"Keys that differ:\n  " + "\n  ".join(differences) + f"\n{start_over}")
 
 
 def _existing_chunk_ok(path: pathlib.Path, start: int, stop: int, num_conditions: int) -> bool:
@@ -226,10 +278,6 @@ class StudyResult(NamedTuple):
     simulator_seconds: float
 
 
-def _pad_ids(run_ids: np.ndarray, size: int) -> np.ndarray:
-    return np.concatenate([run_ids, np.full(size - run_ids.size, run_ids[-1])])
-
-
 def _chunk_rows(config, start, stop, values, seconds) -> dict:
     num_runs = stop - start
     conditions = config.conditions
@@ -239,18 +287,18 @@ def _chunk_rows(config, start, stop, values, seconds) -> dict:
     for name, _ in config.sweep:
         rows[name] = np.repeat([c[name] for c in conditions], num_runs).astype(float)
     for name, value in values.items():
-        rows[name] = np.asarray(value)[:, :num_runs].reshape(-1)
+        rows[name] = np.asarray(value).reshape(-1)
     rate = num_runs * len(conditions) * config.scenario.num_steps / max(seconds, 1e-9)
     rows["update_rate_hz"] = np.full(num_runs * len(conditions), rate)
     return rows
 
 
 class ChunkOutput(NamedTuple):
-    """What ``_ChunkRunner`` computes for runs [start, stop), padded to its chunk size Rp.
+    """What ``_ChunkRunner`` computes for the R runs [start, stop) under G conditions.
 
-    scenario: the RunBatch of the chunk; values: metric name -> (G, Rp); errors: (G, Rp, T)
-    position error per step; example: run traces and final map, leaves (G, Rp, ...);
-    seconds: wall time of the filter call.
+    scenario: the RunBatch of the chunk (leaves (R, ...)); values: metric name -> (G, R)
+    numpy array; errors: (G, R, T) position error per step; example: run traces and final
+    map, leaves (G, R, ...); seconds: wall time of the filter calls.
     """
 
     scenario: RunBatch
@@ -261,53 +309,92 @@ class ChunkOutput(NamedTuple):
 
 
 class _ChunkRunner:
-    """Simulates and filters one chunk of runs; compiles once; shards runs over devices.
+    """Simulates and filters chunks of runs with one compiled program of fixed width.
 
-    With D > 1 local devices the run axis is split over a 1-D mesh ("mc") with
-    ``NamedSharding``; the chunk is padded to a multiple of D (padded runs repeat the last id
-    and are dropped). Each run's numbers depend only on its id, never on D or the chunk size.
+    Every (run, condition) pair goes through the same compiled call of width
+    W = ``config.run_width``, whatever the chunk size, the number of runs or conditions, or
+    the device count: a chunk's G x R pairs are cut into groups of W (the last one padded by
+    repeating its last pair; padding dropped), and the simulator, too, runs in groups of W
+    runs. On a CPU a pair's numbers do not depend on its position in the group or on its
+    neighbours (measured, ``tests/test_study_determinism.py``), so they depend on its run
+    id, its condition and W only.
+
+    With D > 1 local devices the groups go round-robin to the devices, each running its own
+    copy of the single-device program (compiled once per device, in parallel threads). A
+    program sharded over a mesh instead (``shard_map``, one compile) was measured to differ
+    from the single-device one in the last bit of rpe_translation for W = 3 on 2 CPU
+    devices: XLA partitions and fuses it differently.
     """
 
     def __init__(self, config: StudyConfig):
         self.config = config
         self.params = condition_params(config)
-        self.function = _chunk_fn(config)
-        self.compiled = None
+        self.width = config.run_width
+        self.function = _group_fn(config)
+        self.devices = jax.local_devices()
+        self.compiled: dict = {}  # device -> the compiled program placed on it
         self.compile_seconds = self.filter_seconds = self.simulator_seconds = 0.0
-        devices = jax.devices()
-        self.mesh = None
-        if len(devices) > 1:
-            self.mesh = jax.make_mesh((len(devices),), ("mc",),
-                                      axis_types=(jax.sharding.AxisType.Auto,))
-        multiple = len(devices)
-        self.padded_size = -(-config.chunk_size // multiple) * multiple
 
-    def _shard(self, tree):
-        if self.mesh is None:
-            return tree
-        sharding = jax.sharding.NamedSharding(self.mesh, jax.sharding.PartitionSpec("mc"))
-        return jax.device_put(tree, sharding)
+    def _compile(self, groups_args: list) -> None:
+        """Compile the program for the devices of ``groups_args`` that lack it (lowered here,
+        compiled in parallel threads: XLA releases the GIL while it compiles)."""
+        from concurrent.futures import ThreadPoolExecutor
 
-    def __call__(self, start: int, stop: int):
+        lowered = {}
+        for device, args in groups_args:
+            if device not in self.compiled and device not in lowered:
+                lowered[device] = self.function.lower(*args)
+        if not lowered:
+            return
+        tick = time.perf_counter()
+        if len(lowered) == 1:  # one device: no thread needed
+            self.compiled.update({device: low.compile() for device, low in lowered.items()})
+        else:
+            with ThreadPoolExecutor(len(lowered)) as pool:
+                self.compiled.update(zip(lowered, pool.map(lambda low: low.compile(),
+                                                           lowered.values())))
+        self.compile_seconds += time.perf_counter() - tick
+
+    def __call__(self, start: int, stop: int) -> ChunkOutput:
         config = self.config
-        run_ids = _pad_ids(np.arange(start, stop), self.padded_size)
+        run_ids = np.arange(start, stop)
+        num_runs, num_conditions = run_ids.size, len(config.conditions)
         tick = time.perf_counter()
         scenario = jax.block_until_ready(scenario_batch(config, run_ids))
         self.simulator_seconds += time.perf_counter() - tick
         keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(config.seed), i))(
             jnp.asarray(run_ids, jnp.uint32))
-        keys, controls, observations, seen = self._shard(
-            (keys, scenario.controls, scenario.observations, scenario.tree_seen))
-        args = (keys, self.params, controls, observations,
-                scenario._replace(controls=None, observations=None, tree_seen=seen))
-        if self.compiled is None:
-            tick = time.perf_counter()
-            self.compiled = self.function.lower(*args).compile()
-            self.compile_seconds = time.perf_counter() - tick
+        # Groups are gathered on the host (numpy indexing: no eager device op per group).
+        per_run = jax.device_get((keys, scenario.controls, scenario.observations,
+                                  scenario.tree_seen))
+        params_by_condition = jax.device_get(self.params)
+        shared = jax.device_get((scenario.truth_pose, scenario.tree_centres,
+                                 scenario.tree_radii))
+        # Pairs in (condition, run) order, padded to whole groups with the last pair.
+        num_pairs = num_conditions * num_runs
+        padded = -(-num_pairs // self.width) * self.width
+        pairs = np.minimum(np.arange(padded), num_pairs - 1)
+        groups_args = []
+        for index, first in enumerate(range(0, padded, self.width)):
+            group = pairs[first:first + self.width]
+            runs, conditions = group % num_runs, group // num_runs
+            per_pair = jax.tree.map(lambda x: x[runs], per_run)
+            params = jax.tree.map(lambda x: x[conditions], params_by_condition)
+            device = self.devices[index % len(self.devices)]
+            args = jax.device_put((*per_pair[:1], params, *per_pair[1:], *shared), device)
+            groups_args.append((device, args))
+        self._compile(groups_args)
         tick = time.perf_counter()
-        values, errors, example = jax.block_until_ready(self.compiled(*args))
+        outputs = [self.compiled[device](*args) for device, args in groups_args]  # async
+        outputs = jax.device_get(outputs)
         seconds = time.perf_counter() - tick
         self.filter_seconds += seconds
+
+        def unpair(*groups):
+            flat = np.concatenate(groups)[:num_pairs]
+            return flat.reshape((num_conditions, num_runs) + flat.shape[1:])
+
+        values, errors, example = jax.tree.map(unpair, *outputs)
         return ChunkOutput(scenario, values, errors, example, seconds)
 
 
@@ -344,7 +431,7 @@ def write_chunk(out_dir, config: StudyConfig, start: int, stop: int,
     out_dir = pathlib.Path(out_dir)
     rows = _chunk_rows(config, start, stop, output.values, output.seconds)
     errors = np.asarray(output.errors)
-    np_errors = errors[:, :stop - start].reshape(-1, errors.shape[-1])
+    np_errors = errors.reshape(-1, errors.shape[-1])
     _atomic_write(out_dir / f"traces-{start:06d}-{stop:06d}.npz",
                   lambda p: _save_npz(p, run_id=rows["run_id"], condition=rows["condition"],
                                       pose_error=np_errors))
@@ -358,8 +445,8 @@ def run_study(config: StudyConfig, out_dir, progress: bool = True) -> StudyResul
     from tqdm.auto import tqdm
 
     out_dir = pathlib.Path(out_dir)
+    runner = _ChunkRunner(config)  # anything it refuses is refused before a file is written
     pending = open_study(config, out_dir)
-    runner = _ChunkRunner(config)
     bar = tqdm(pending, desc=f"study {config.name}", unit="chunk", disable=not progress)
     for start, stop in bar:
         write_chunk(out_dir, config, start, stop, runner(start, stop))

@@ -60,10 +60,25 @@ def study_world(scenario: ScenarioConfig, seed: int):
     return forest, path
 
 
-def scenario_batch(config: StudyConfig, run_ids: np.ndarray) -> RunBatch:
-    """Simulate the runs ``run_ids``: run i draws its noise from fold_in(PRNGKey(seed), i)."""
+def scenario_batch(config: StudyConfig, run_ids: np.ndarray, width: int | None = None
+                   ) -> RunBatch:
+    """Simulate the runs ``run_ids``: run i draws its noise from fold_in(PRNGKey(seed), i).
+
+    The runs go through one compiled simulator of ``width`` runs (default
+    ``config.run_width``) in groups, the last padded by repeating its last id, so a run's
+    inputs never depend on how many runs are asked for at once. Leaves (len(run_ids), ...).
+    """
     simulate, world = _simulator(config.scenario, config.seed, config.filter.max_obs)
-    controls, observations, seen = simulate(jnp.asarray(run_ids, jnp.uint32))
+    run_ids = np.asarray(run_ids, np.int64).reshape(-1)
+    if run_ids.size == 0:
+        raise ValueError("scenario_batch needs at least one run id")
+    width = config.run_width if width is None else int(width)
+    padded = -(-run_ids.size // width) * width
+    ids = np.concatenate([run_ids, np.full(padded - run_ids.size, run_ids[-1])])
+    groups = [simulate(jnp.asarray(ids[first:first + width], jnp.uint32))
+              for first in range(0, padded, width)]
+    controls, observations, seen = jax.tree.map(
+        lambda *parts: jnp.concatenate(parts)[:run_ids.size], *groups)
     return world._replace(controls=controls, observations=observations, tree_seen=seen)
 
 
