@@ -55,6 +55,9 @@ class StepInfo(NamedTuple):
     birth_slot: (P, K) int32 slot of the landmark each observation created, -1 when it
       created none. With ``match`` and ``ancestor`` it lets ``lineage.trace_lineage`` and
       ``lineage.landmark_identities`` follow one particle's data association back in time.
+    log_evidence: () log sum_i w_i p(z_t | x_i) (with the proposal correction), the particle
+      filter's estimate of log p(z_t | z_1:t-1); summed over steps it estimates the log
+      marginal likelihood of the log (``self_calibration`` monitors its EM with it).
     """
 
     ess: jnp.ndarray
@@ -72,6 +75,7 @@ class StepInfo(NamedTuple):
     best_particle: jnp.ndarray
     ancestor: jnp.ndarray
     birth_slot: jnp.ndarray
+    log_evidence: jnp.ndarray
 
 
 class Filter(NamedTuple):
@@ -128,7 +132,8 @@ class Trace(NamedTuple):
     mean_pose (T, 3), best_pose (T, 3), ess (T,), num_landmarks (T,) of the best particle,
     resampled (T,), weights_reset (T,), num_invalid_obs (T,), num_dropped_births (T,) summed
     over particles, match_rounds (T,), mixture_ratio (T,), mean_log_likelihood (T,);
-    lineage: ``Lineage`` with ``record_lineage=True``, else None.
+    lineage: ``Lineage`` with ``record_lineage=True``, else None; log_evidence (T,)
+    (``StepInfo.log_evidence``; its sum is the log marginal likelihood estimate).
     """
 
     mean_pose: jnp.ndarray
@@ -143,6 +148,7 @@ class Trace(NamedTuple):
     mixture_ratio: jnp.ndarray
     mean_log_likelihood: jnp.ndarray
     lineage: Lineage | None = None
+    log_evidence: jnp.ndarray | None = None
 
 
 class _ObserveResult(NamedTuple):
@@ -497,8 +503,10 @@ def _step(config: FilterConfig, key, state: FilterState, params: Params, control
     moved = state.particles._replace(pose=poses)
     result = jax.vmap(lambda particle, association_: _observe(config, params, particle,
                                                               association_, obs))(moved, found)
-    log_weight, reset = resampling.normalize_log_weights(
-        state.log_weight + result.log_likelihood + correction)
+    unnormalised = state.log_weight + result.log_likelihood + correction
+    log_weight, reset = resampling.normalize_log_weights(unnormalised)
+    # log p(z_t | z_1:t-1): the particle filter's estimate of the incremental evidence.
+    log_evidence = jax.scipy.special.logsumexp(unnormalised)
 
     num_valid = jnp.sum(obs.valid)
     mean_ll = jnp.sum(jnp.exp(state.log_weight) * result.log_likelihood) / jnp.maximum(
@@ -534,7 +542,7 @@ def _step(config: FilterConfig, key, state: FilterState, params: Params, control
         num_set_aside=result.set_aside, mixture_ratio=ratio,
         num_observation_draws=jnp.sum(used_obs).astype(jnp.int32),
         mean_log_likelihood=mean_ll, best_particle=best_particle, ancestor=ancestor,
-        birth_slot=result.birth_slot,
+        birth_slot=result.birth_slot, log_evidence=log_evidence,
     )
     return new_state, info
 
@@ -590,7 +598,7 @@ def _trace_row(state: FilterState, info: StepInfo, record_lineage: bool = False)
         weights_reset=info.weights_reset, num_invalid_obs=info.num_invalid_obs,
         num_dropped_births=jnp.sum(info.num_dropped_births), match_rounds=info.match_rounds,
         mixture_ratio=info.mixture_ratio, mean_log_likelihood=info.mean_log_likelihood,
-        lineage=lineage,
+        lineage=lineage, log_evidence=info.log_evidence,
     )
 
 

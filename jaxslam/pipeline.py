@@ -75,8 +75,8 @@ def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int
     total = int(valid.sum())
     invalid = int(np.sum(np.asarray(trace.num_invalid_obs)))
     if invalid:
-        out.append(f"{invalid} observations were masked as invalid (NaN, negative or zero "
-                   "range, non-finite bearing); check the log's units (ranges in metres, "
+        out.append(f"{invalid} observations were masked as invalid (NaN, negative "
+                   "range, bearing outside [-pi, pi]); check the log's units (ranges in metres, "
                    "bearings in radians)")
     if total == 0:
         out.append("the log has no valid observation: the result is dead reckoning")
@@ -158,6 +158,9 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
 
     key = jax.random.PRNGKey(0) if key is None else key
     obs = log.observations()
+    from jaxslam.validation import observation_units_warnings  # units guard (issue 18)
+    units = observation_units_warnings(np.asarray(obs.z), np.asarray(obs.valid), max_range=(
+        None if calibrate or params is None else float(np.max(np.asarray(params.max_range)))))
     config = dataclasses.replace(config, max_obs=int(obs.z.shape[1]),
                                  motion_model=log.motion_model)
     controls = jnp.asarray(np.asarray(log.controls), jnp.float32)
@@ -195,6 +198,7 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
     warnings = run_warnings(trace, valid, share, config.num_particles, births)
     if calibration is not None:
         warnings = list(calibration.warnings) + warnings
+    warnings = units + list(warnings)
     return LogRun(params, calibration, est, trace, mean_pose, smoothed, values, tuple(warnings))
 
 

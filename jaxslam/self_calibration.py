@@ -37,7 +37,13 @@ estimation use, with the particle filter as the E-step's data associator:
            an observation within 3 std (``_detections``), ``false_alarm_probability`` from the share of observations no other
            observation confirms, ``association_gate`` from the innovations at the filter's
            own pose (so the gate covers the pose error a FastSLAM 1.0 innovation leaves out);
-      5. stop when every group's typical std moved by less than ``tol`` (relative).
+      5. monitor EM by the particle filter's own log marginal likelihood estimate (the sum
+         of ``Trace.log_evidence``); when the iterations do not converge, return the
+         settings whose run scored best (an iteration that broke the association scores
+         low);
+      6. limit each noise group's move to a factor ``TRUST_FACTOR`` an iteration
+         (``_trust_region``), and stop when every group's typical std moved by less than
+         ``tol`` (relative).
 
 Why this and not a likelihood search over a population of Params: the filter's marginal
 likelihood is a noisy, flat function of 9 motion and 4 sensor coefficients at the particle
@@ -72,6 +78,8 @@ MIN_MOVES = 30  # fewer moves than this: the motion noise is not fitted
 MIN_OBSERVATIONS = 20  # fewer associated observations (in landmarks seen >= 3 times): none
 MIN_SIGHTINGS = 3  # a landmark's observations enter the fits when it was seen this often
 STD_FLOOR = 1e-5  # lower bound of every fitted constant term (keeps covariances invertible)
+BURST_LIMITS = (0.25, 10.0)  # most burst probability, most burst scale (``fit_bursts``)
+TRUST_FACTOR = 3.0  # most factor a noise group's typical std may move in one iteration
 TAIL_QUANTILE = 0.95  # the share of errors the fitted std must cover (``_tail_factor``)
 CHI2_1DOF = {0.95: 3.8415, 0.99: 6.6349}  # chi-square quantiles, 1 degree of freedom
 
@@ -81,8 +89,8 @@ class CalibrationInfo(NamedTuple):
 
     Attributes:
       iterations: EM iterations run.
-      objective: (iterations,) the filter's mean per-observation log-likelihood with each
-        iteration's Params (``Trace.mean_log_likelihood`` averaged over steps).
+      objective: (iterations,) the filter's estimate of the log marginal likelihood of the
+        log with each iteration's Params (``Trace.log_evidence`` summed over steps).
       smoother_cost: (iterations,) the smoother's final robust cost per residual row.
       typical_std: (iterations + 1, 4) typical std of the four noise groups (heading [rad],
         translation [m], range [m], bearing [rad]: the mean over the log's samples) before
@@ -269,7 +277,9 @@ def fit_bursts(white, iterations: int = 50, min_share: float = 0.01, min_ratio: 
             - np.sum(log_normal(single)))
     if eps < min_share or b / a < min_ratio or gain <= np.log(count):
         return None
-    return eps, a, b / a
+    # A burst wider than BURST_LIMITS' scale is an outlier no particle set of a few hundred
+    # can sample, and a burst share above its limit is a mis-fit core: both are clipped.
+    return min(eps, BURST_LIMITS[0]), a, min(b / a, BURST_LIMITS[1])
 
 
 def _observation_update(res: _Residuals, params: Params, scales: smoothing.NoiseScales,
@@ -352,6 +362,30 @@ def _single_share(ids):
         return None
     counts = np.bincount(ids[used])
     return float(np.mean(counts[ids[used]] == 1))
+
+
+_GROUP_FIELDS = (("rot1_noise", "rot2_noise"), ("trans_noise",),
+                 ("range_noise", "range_std_floor"), ("bearing_noise", "bearing_std_floor"))
+
+
+def _trust_region(old: Params, new: Params, odometry, z_range) -> Params:
+    """``new`` with each noise group's coefficients scaled back so that its typical std moves
+    by at most ``TRUST_FACTOR`` from ``old``'s in one iteration.
+
+    An iteration on a bad association (a filter that lost the map) can propose an absurd
+    noise; the next filter run with it cannot recover. The limit lets real changes through
+    in a few iterations (a factor 27 in three) and stops a single jump.
+    """
+    before = _typical_stds(old, odometry, z_range)
+    after = _typical_stds(new, odometry, z_range)
+    updates = {}
+    for group, fields in enumerate(_GROUP_FIELDS):
+        ratio = after[group] / max(before[group], 1e-12)
+        limited = float(np.clip(ratio, 1.0 / TRUST_FACTOR, TRUST_FACTOR))
+        if ratio > 0 and limited != ratio:
+            for name in fields:
+                updates[name] = np.asarray(getattr(new, name), np.float64) * (limited / ratio)
+    return _with_values(new, updates)
 
 
 def _confirmed_ids(ids):
@@ -470,13 +504,15 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     done = 0
     motion = obs = None
     used = np.zeros(0, bool)
+    evaluated = []  # the Params each filter run (objective entry) used
     for done in range(1, iterations + 1):
         odometry = np.asarray(control_to_odometry(jnp.asarray(controls, dtype), params,
                                                   motion_model), np.float64)
         typical.append(_typical_stds(params, odometry, z[valid][:, 0]))
         final, trace = run_filter(config, key, params, jnp.asarray(controls, dtype),
                                   observations, jnp.asarray(start, dtype), record_lineage=True)
-        objective.append(float(np.mean(np.asarray(trace.mean_log_likelihood))))
+        objective.append(float(np.sum(np.asarray(trace.log_evidence))))
+        evaluated.append(params)
         history = jax.tree.map(np.asarray, lineage.trace_lineage(
             trace.lineage, estimate(final).best_particle))
         ids, _ = lineage.landmark_identities(history.match, history.birth_slot)
@@ -520,18 +556,30 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                 update["false_alarm_probability"] = float(np.clip(single_share, 1e-3, 0.5))
         if "association_gate" in update:
             update["airlock_sigmas"] = float(np.sqrt(update["association_gate"]))
-        params = _with_values(params, update)
-        values.update({name: _plain(value) for name, value in update.items()})
+        new_params = _trust_region(params, _with_values(params, update), odometry,
+                                   z[valid][:, 0])
+        params = new_params
+        values.update({name: _plain(getattr(params, name)) for name in update})
         new_typical = _typical_stds(params, odometry, z[valid][:, 0])
         change = np.max(np.abs(new_typical / typical[-1] - 1.0))
         if progress is not None:
-            progress(f"calibration iteration {done}: log-likelihood {objective[-1]:.3f}, "
-                     f"typical stds heading {new_typical[0]:.4g} rad, translation "
+            progress(f"calibration iteration {done}: log marginal likelihood "
+                     f"{objective[-1]:.1f}, typical stds heading {new_typical[0]:.4g} rad, translation "
                      f"{new_typical[1]:.4g} m, range {new_typical[2]:.4g} m, bearing "
                      f"{new_typical[3]:.4g} rad (largest change {change:.1%})")
         if change < tol:
             converged = True
             break
+    chosen = ""
+    if not converged and evaluated:
+        # EM raises the marginal likelihood while the E-step's association holds; when it
+        # did not converge, the settings whose own filter run scored best are returned.
+        best = int(np.nanargmax(np.where(np.isfinite(objective), objective, np.nan))
+                   if np.any(np.isfinite(objective)) else len(evaluated) - 1)
+        params = evaluated[best]
+        values = {name: _plain(getattr(params, name)) for name in values}
+        chosen = (f"; returned iteration {best + 1}'s settings (the highest log marginal "
+                  f"likelihood of the {len(evaluated)} filter runs)")
     typical.append(_typical_stds(params, odometry, z[valid][:, 0]))
     if motion is None:
         warnings.append(f"too few moves ({steps}; need {MIN_MOVES}) to fit the motion noise: "
@@ -543,6 +591,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     relative_std = {group: 1.0 / np.sqrt(2.0 * n) for group, n in samples.items()}
     verdict = ("converged" if converged else f"not converged after {done} iterations "
                f"(the last moved a noise std by more than {tol:.0%})")
+    verdict += chosen
     if warnings:
         verdict += "; partly calibrated (see warnings)"
     return params, CalibrationInfo(done, np.asarray(objective), np.asarray(costs),
