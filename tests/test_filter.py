@@ -107,7 +107,8 @@ def test_all_weights_zero_recover_to_uniform(edge):
     assert np.isfinite(float(info.ess)) and tree_all_finite(new_state)
     # Every field finite but the evidence, which is documented as -inf for such a step
     # (no particle explained the data: the log marginal likelihood of the log is -inf).
-    assert tree_all_finite(info._replace(match=info.match.astype(F32), log_evidence=0.0))
+    assert tree_all_finite(info._replace(match=info.match.astype(F32),
+                                         log_evidence=jnp.zeros((), F32)))
     assert float(info.log_evidence) == -np.inf
     # Normal weights do not trigger the flag.
     _, info = step(jax.random.key(3), state_with_map(filt, [[5.0, 0.0]]), default_params(),
