@@ -574,8 +574,12 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     if not converged and evaluated:
         # EM raises the marginal likelihood while the E-step's association holds; when it
         # did not converge, the settings whose own filter run scored best are returned.
-        best = int(np.nanargmax(np.where(np.isfinite(objective), objective, np.nan))
-                   if np.any(np.isfinite(objective)) else len(evaluated) - 1)
+        # The first run used the starting settings, whose sensor fields (range, field of
+        # view, detection) are guesses no M-step has seen: it is never the one returned.
+        scores = np.asarray(objective, np.float64)
+        scores[0] = -np.inf if len(scores) > 1 else scores[0]
+        best = int(np.argmax(np.where(np.isfinite(scores), scores, -np.inf))
+                   if np.any(np.isfinite(scores)) else len(evaluated) - 1)
         params = evaluated[best]
         values = {name: _plain(getattr(params, name)) for name in values}
         chosen = (f"; returned iteration {best + 1}'s settings (the highest log marginal "
