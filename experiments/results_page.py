@@ -41,7 +41,9 @@ FINDINGS = {
         "divergence falls from 13.1% (motion) to 0.4% (phi=0.3) and 0.1% (phi=1), at P=30 from "
         "2.0% to 0.2%, for 1.7x the cost per step. phi=0 inside the mixture is worse than the "
         "plain motion proposal because it associates at the motion mean rather than at each "
-        "sample. The adaptive ratio (mean phi ~0.16) sits between."),
+        "sample (measured before the fix: motion draws are now matched at their own pose, so "
+        "phi=0 is the motion proposal; this study was not re-run, see mixture_regime). The "
+        "adaptive ratio (mean phi ~0.16) sits between."),
     "association": (
         "**Findings.** Stable matching, greedy and optimal assignment give identical results "
         "on every run (well-separated trunks, accurate sensor), and stable matching is 4x "
