@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxslam import metrics
+from jaxslam.datasets.log_format import odometry_path
 from jaxslam.filter import estimate, run_filter
 from jaxslam.self_calibration import calibrate_params, starting_params
 from jaxslam.types import FilterConfig, default_params
@@ -69,17 +70,6 @@ def make_log(key, params, wobble: float = 0.3):
     scenario = build_scenario(key_runs, forest, path, 1, params=params, max_obs=12)
     return (scenario.controls[0], jax.tree.map(lambda a: a[0], scenario.observations),
             scenario.poses[0], forest.centres)
-
-
-def dead_reckoning(controls, start):
-    from jaxslam.motion import apply_odometry
-
-    pose = jnp.asarray(start)
-    poses = [pose]
-    for control in np.asarray(controls):
-        pose = apply_odometry(pose, jnp.asarray(control))
-        poses.append(pose)
-    return np.asarray(jnp.stack(poses))
 
 
 def score(config, key, params, controls, obs, truth, trees):
@@ -138,7 +128,7 @@ def main(argv=None):
         key = jax.random.fold_in(jax.random.PRNGKey(args.seed), run)
         key_log, key_filter = jax.random.split(key)
         controls, obs, truth, trees = make_log(key_log, truth_params, args.wobble)
-        dr = dead_reckoning(controls, truth[0])
+        dr = odometry_path(np.asarray(controls), np.asarray(truth[0]))
         dr_error = float(np.hypot(*(dr[-1, :2] - np.asarray(truth[-1, :2]))))
         true_error, true_map, seen, _ = score(config, key_filter, truth_params, controls, obs,
                                               truth, trees)

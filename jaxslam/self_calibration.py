@@ -65,6 +65,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxslam import calibrate, lineage, smoothing
+from jaxslam.datasets.log_format import wrap_angle_np
 from jaxslam.filter import estimate, run_filter
 from jaxslam.geometry import range_bearing
 from jaxslam.motion import control_to_odometry, odometry_from_poses, odometry_std
@@ -300,7 +301,7 @@ def _observation_update(res: _Residuals, params: Params, scales: smoothing.Noise
             return None
         error = res.predicted_z[used, group] - res.measured_z[used, group]
         if group == 1:
-            error = (error + np.pi) % (2 * np.pi) - np.pi
+            error = wrap_angle_np(error)
         row = row * np.sqrt(_tail_factor(error, features @ row))
         new.append(np.array([row[0], max(row[1], STD_FLOOR)]))
     return np.stack(new)
@@ -339,11 +340,11 @@ def _sensor_update(res: _Residuals, z, valid, used: np.ndarray, smoothed_path, l
     if used.any():
         std = smoothing._observation_std(res.measured_z[used, 0], params)
         innovation = res.filter_z[used] - res.measured_z[used]
-        innovation[:, 1] = (innovation[:, 1] + np.pi) % (2 * np.pi) - np.pi
+        innovation[:, 1] = wrap_angle_np(innovation[:, 1])
         nis = np.sum((innovation / std) ** 2, axis=1)
         # Inliers of the smoothed solution only: a wrong association must not widen the gate.
         smooth_err = res.predicted_z[used] - res.measured_z[used]
-        smooth_err[:, 1] = (smooth_err[:, 1] + np.pi) % (2 * np.pi) - np.pi
+        smooth_err[:, 1] = wrap_angle_np(smooth_err[:, 1])
         inlier = np.sum((smooth_err / std) ** 2, axis=1) <= 9.0
         if inlier.sum() >= MIN_OBSERVATIONS:
             out["association_gate"] = float(np.clip(np.quantile(nis[inlier], 0.99),
@@ -421,15 +422,14 @@ def _detections(path, points, z, valid, params: Params, max_range: float, half_f
         dx = points[None, :, 0] - pose[:, None, 0]
         dy = points[None, :, 1] - pose[:, None, 1]
         distance = np.hypot(dx, dy)  # (t, L)
-        bearing = (np.arctan2(dy, dx) - pose[:, None, 2] + np.pi) % (2 * np.pi) - np.pi
+        bearing = wrap_angle_np(np.arctan2(dy, dx) - pose[:, None, 2])
         in_view = ((distance >= float(params.min_range)) & (distance <= max_range)
                    & (np.abs(bearing) <= half_fov))
         std = smoothing._observation_std(distance.reshape(-1), params).reshape(
             distance.shape + (2,))
         obs = z[begin:begin + chunk]  # (t, K, 2)
         d_range = (obs[:, :, None, 0] - distance[:, None, :]) / std[:, None, :, 0]
-        d_bearing = ((obs[:, :, None, 1] - bearing[:, None, :] + np.pi) % (2 * np.pi)
-                     - np.pi) / std[:, None, :, 1]
+        d_bearing = wrap_angle_np(obs[:, :, None, 1] - bearing[:, None, :]) / std[:, None, :, 1]
         close = (d_range**2 + d_bearing**2 <= 9.0) & valid[begin:begin + chunk, :, None]
         detected = np.any(close, axis=1)  # (t, L)
         ranges.append(distance[in_view])
