@@ -228,7 +228,12 @@ def _run_log(args) -> int:
 
 
 def _log_settings(args, log):
-    """(FilterConfig, starting or fixed Params or None, calibrate?) for a log run."""
+    """(study config, FilterConfig sized to the log, Params, calibrate?) for a log run.
+
+    The Params are a ``--params`` file's (used as they are), the calibration's start
+    (``starting_params`` with the config's [params]), or the config's values
+    (``--no-calibrate``).
+    """
     import dataclasses
 
     from jaxslam import pipeline

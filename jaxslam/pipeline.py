@@ -106,10 +106,9 @@ def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int
     return out
 
 
-def history_counts(trace: Trace, final_state, valid) -> tuple[float, int]:
-    """(share of valid observations matched to no landmark, landmarks started) along the
-    best particle's history."""
-    history = lineage.trace_lineage(trace.lineage, estimate(final_state).best_particle)
+def history_counts(history: lineage.LineagePath, valid) -> tuple[float, int]:
+    """(share of valid observations matched to no landmark, landmarks started) along one
+    particle's history (``lineage.trace_lineage``); valid: (T, K)."""
     valid = np.asarray(valid)
     births = int(np.sum((np.asarray(history.birth_slot) >= 0) & valid))
     if not valid.any():
@@ -177,18 +176,18 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
     est = estimate(final)
     mean_pose = np.asarray(trace.mean_pose, np.float64)
     smoothed = None
+    history = lineage.trace_lineage(trace.lineage, est.best_particle)  # traced once
     if smooth:
         from jaxslam import smoothing
         from jaxslam.motion import control_to_odometry
 
-        history = lineage.trace_lineage(trace.lineage, est.best_particle)
         odometry = control_to_odometry(controls, params, log.motion_model)
         smoothed = smoothing.smooth_lineage(np.asarray(start, np.float64),
                                             jax.tree.map(np.asarray, history),
                                             np.asarray(odometry), np.asarray(obs.z), params,
                                             visit_gap=visit_gap).path
     valid = np.asarray(obs.valid)
-    share, births = history_counts(trace, final, valid)
+    share, births = history_counts(history, valid)
     values = {"steps": log.num_steps, "num_landmarks": int(np.sum(np.asarray(est.active))),
               "valid_observations": int(valid.sum()),
               "invalid_observations": int(np.sum(np.asarray(trace.num_invalid_obs))),
