@@ -398,6 +398,15 @@ class _ChunkRunner:
         return ChunkOutput(scenario, values, errors, example, seconds)
 
 
+def recompute_runs(config: StudyConfig, start: int, stop: int) -> ChunkOutput:
+    """Simulate and filter the runs [start, stop) of a study again, under every condition.
+
+    The numbers equal the stored ones bit for bit (same run keys, same compiled width),
+    so a run's full trajectory and map can be recovered without storing every run's.
+    """
+    return _ChunkRunner(config)(start, stop)
+
+
 def open_study(config: StudyConfig, out_dir) -> list[tuple[int, int]]:
     """Create or check ``out_dir`` for ``config``, warn about foreign files, and return the
     run ranges [start, stop) of the chunks not yet on disk.
