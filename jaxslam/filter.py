@@ -17,6 +17,19 @@ One step (seed 000; Montemerlo et al. 2002), for every particle i in parallel:
 Observations are cleaned inside jit: rows with a NaN or infinite value, a negative range or a
 bearing outside [-pi, pi] are masked out and counted in ``info.num_invalid_obs``. The public
 ``validate_observations`` raises instead (use it at the boundary of your program).
+
+Controls are cleaned the same way (``sanitize_control``): a control row u_t (3,) of any motion
+model with a NaN or infinite entry is missing odometry. The step then keeps every pose,
+
+    x_t^i = x_{t-1}^i   (no motion noise, no observation draw, log-weight correction 0),
+
+and still runs steps 2-6 (association, EKF update, weights, births, resampling) at the kept
+poses; ``info.invalid_control`` flags the step. No noise is added because nothing is known
+about the move: a zero control's standstill noise (the constant terms c of Eq. (1)) would be
+an invented move, while keeping the poses leaves the next valid control to move them (the
+missed move then shows as a larger residual there). The public ``run_filter`` refuses
+non-finite concrete controls instead (``validation.check_controls``); ``Filter.step``,
+``scan_filter`` and ``run_filter`` called on tracers (under jit or vmap) mask them.
 """
 from __future__ import annotations
 
@@ -58,6 +71,8 @@ class StepInfo(NamedTuple):
     log_evidence: () log sum_i w_i p(z_t | x_i) (with the proposal correction), the particle
       filter's estimate of log p(z_t | z_1:t-1); summed over steps it estimates the log
       marginal likelihood of the log (``self_calibration`` monitors its EM with it).
+    invalid_control: () bool, the control held a NaN or inf and was masked: the poses were
+      kept (module docstring), and ``mixture_ratio`` is 0 for the step.
     """
 
     ess: jnp.ndarray
@@ -76,11 +91,13 @@ class StepInfo(NamedTuple):
     ancestor: jnp.ndarray
     birth_slot: jnp.ndarray
     log_evidence: jnp.ndarray
+    invalid_control: jnp.ndarray
 
 
 class Filter(NamedTuple):
     """``init(initial_pose (3,)) -> FilterState``;
-    ``step(key, state, params, control (3,), obs) -> (state, StepInfo)``.
+    ``step(key, state, params, control (3,), obs) -> (state, StepInfo)``; a control with a
+    NaN or inf is masked (poses kept, ``StepInfo.invalid_control``, module docstring).
 
     Unpacks as ``init, step = make_filter(config)``; ``.config`` gives the config back.
     """
@@ -133,7 +150,9 @@ class Trace(NamedTuple):
     resampled (T,), weights_reset (T,), num_invalid_obs (T,), num_dropped_births (T,) summed
     over particles, match_rounds (T,), mixture_ratio (T,), mean_log_likelihood (T,);
     lineage: ``Lineage`` with ``record_lineage=True``, else None; log_evidence (T,)
-    (``StepInfo.log_evidence``; its sum is the log marginal likelihood estimate).
+    (``StepInfo.log_evidence``; its sum is the log marginal likelihood estimate);
+    invalid_control (T,) bool, ``StepInfo.invalid_control`` (``trace.invalid_control.sum()``
+    is the number of masked control rows of the run).
     """
 
     mean_pose: jnp.ndarray
@@ -149,6 +168,7 @@ class Trace(NamedTuple):
     mean_log_likelihood: jnp.ndarray
     lineage: Lineage | None = None
     log_evidence: jnp.ndarray | None = None
+    invalid_control: jnp.ndarray | None = None
 
 
 class _ObserveResult(NamedTuple):
@@ -177,6 +197,17 @@ def sanitize_observations(obs: Observations):
     radius = jnp.where(valid & jnp.isfinite(obs.radius) & (obs.radius > 0), obs.radius, 0.0)
     clean = obs._replace(z=z, valid=valid, radius=radius)
     return clean, jnp.sum(invalid).astype(jnp.int32)
+
+
+def sanitize_control(control):
+    """Mask a non-finite control inside jit. Returns (control (..., 3), invalid (...,) bool).
+
+    invalid = any_j ~isfinite(u_j); the returned control is 0 where invalid (so nothing
+    downstream, its gradient included, sees the NaN: the caller's ``where`` on the result of
+    a zero control is the second half of a double where) and ``control`` elsewhere.
+    """
+    invalid = ~jnp.all(jnp.isfinite(control), axis=-1)
+    return jnp.where(invalid[..., None], jnp.zeros_like(control), control), invalid
 
 
 def validate_observations(obs: Observations, max_obs: int | None = None) -> None:
@@ -379,9 +410,14 @@ def _observe(config: FilterConfig, params: Params, particle: Particles, found: _
 # Proposal
 
 
-def _propose(config, key, params, particles: Particles, control, obs, ratio):
+def _propose(config, key, params, particles: Particles, control, obs, ratio, keep_pose):
     """Sample new poses and associate. Returns (poses (P, 3), association (P leading axis),
-    log-weight corrections (P,), observation draws (P,) bool)."""
+    log-weight corrections (P,), observation draws (P,) bool).
+
+    ``keep_pose`` () bool (a masked control, ``sanitize_control``; ``control`` is then 0 and
+    the caller passes ``ratio`` 0): every particle keeps its pose, is associated there and
+    gets correction 0. The draws are still made (same keys) and dropped by ``where``.
+    """
     num = config.num_particles
     key_motion, key_mixture = jax.random.split(key)
     motion = config.motion_model
@@ -393,6 +429,9 @@ def _propose(config, key, params, particles: Particles, control, obs, ratio):
         mean = jax.vmap(lambda pose: predict_pose(pose, control, params, motion))(
             particles.pose)
         motion_draw = jnp.where(jnp.any(particles.active, axis=1)[:, None], motion_draw, mean)
+    # Missing control: the "motion sample" is the previous pose. With ratio 0 no particle
+    # takes the observation draw, so every proposal below returns these poses.
+    motion_draw = jnp.where(keep_pose, particles.pose, motion_draw)
     if config.proposal == "motion":
         found = jax.vmap(lambda particle, pose: _associate(config, params, particle, pose, obs))(
             particles, motion_draw)
@@ -420,6 +459,9 @@ def _propose(config, key, params, particles: Particles, control, obs, ratio):
         again = ~used_obs | config.associate_at_sample
         at_sample = _associate(config, params, particle, pose, obs)
         found = jax.tree.map(lambda a, b: jnp.where(again, a, b), at_sample, found)
+        # A kept pose was not proposed: there is no density ratio to correct (and the zero
+        # control's p_motion at it is NaN when the constant noise terms are 0).
+        correction = jnp.where(keep_pose, jnp.zeros_like(correction), correction)
         return pose, found, correction, used_obs
 
     return jax.vmap(one)(jax.random.split(key_mixture, num), particles, motion_draw)
@@ -495,11 +537,17 @@ def _init(config: FilterConfig, initial_pose=None, dtype=jnp.float32) -> FilterS
 
 def _step(config: FilterConfig, key, state: FilterState, params: Params, control,
           obs: Observations):
+    # One float dtype, the state's: float64 params or observations with a float32 state
+    # would otherwise change the type of the scan carry (a no-op when they already match).
+    params, control, obs = cast_floating((params, control, obs), state.particles.pose.dtype)
     key_propose, key_resample = jax.random.split(key)
     obs, num_invalid = sanitize_observations(obs)
-    ratio = _mixture_ratio(config, params, state)
+    control, invalid_control = sanitize_control(control)
+    # A masked control draws nothing from the observation proposal (phi 0, poses kept).
+    ratio = jnp.where(invalid_control, 0.0, _mixture_ratio(config, params, state)).astype(
+        state.log_weight.dtype)
     poses, found, correction, used_obs = _propose(
-        config, key_propose, params, state.particles, control, obs, ratio)
+        config, key_propose, params, state.particles, control, obs, ratio, invalid_control)
     moved = state.particles._replace(pose=poses)
     result = jax.vmap(lambda particle, association_: _observe(config, params, particle,
                                                               association_, obs))(moved, found)
@@ -543,6 +591,7 @@ def _step(config: FilterConfig, key, state: FilterState, params: Params, control
         num_observation_draws=jnp.sum(used_obs).astype(jnp.int32),
         mean_log_likelihood=mean_ll, best_particle=best_particle, ancestor=ancestor,
         birth_slot=result.birth_slot, log_evidence=log_evidence,
+        invalid_control=invalid_control,
     )
     return new_state, info
 
@@ -598,7 +647,7 @@ def _trace_row(state: FilterState, info: StepInfo, record_lineage: bool = False)
         weights_reset=info.weights_reset, num_invalid_obs=info.num_invalid_obs,
         num_dropped_births=jnp.sum(info.num_dropped_births), match_rounds=info.match_rounds,
         mixture_ratio=info.mixture_ratio, mean_log_likelihood=info.mean_log_likelihood,
-        lineage=lineage, log_evidence=info.log_evidence,
+        lineage=lineage, log_evidence=info.log_evidence, invalid_control=info.invalid_control,
     )
 
 
@@ -614,7 +663,9 @@ def scan_filter(config: FilterConfig, key, state: FilterState, params: Params, c
 
     Step t uses key ``fold_in(key, t)``. Returns (final state, ``Trace``); with
     ``record_lineage`` the trace carries every particle's ancestry and association
-    (``Lineage``, for ``smoothing.smooth_lineage``).
+    (``Lineage``, for ``smoothing.smooth_lineage``). ``controls`` (T, 3) are not checked: a
+    row with a NaN or inf is masked (poses kept, module docstring) and flagged in
+    ``trace.invalid_control`` (T,).
     """
     step = make_filter(config).step
     if record_lineage:
@@ -652,7 +703,8 @@ def run_filter(config: FilterConfig | Filter, key, params: Params, controls,
     Returns:
       (final ``FilterState``, ``Trace`` with leading axis T).
     Raises:
-      ValueError: bad shapes, a non-finite control row, or ``Params`` that
+      ValueError: bad shapes, a non-finite control row (concrete controls only: under jit or
+        vmap the row is masked as in ``scan_filter``), or ``Params`` that
         ``validation.check_params`` refuses. Float leaves of ``params`` and ``observations``
         are cast to the controls' dtype (the filter's dtype).
     """

@@ -296,7 +296,8 @@ def check_controls(controls, num_steps: int | None = None, where: str = "control
     bad_rows = ~np.isfinite(np.asarray(controls, np.float64)).all(axis=1)
     if bad_rows.any():
         row = int(np.argmax(bad_rows))
-        raise ValueError(f"{where} row {row} is {np.asarray(controls[row]).tolist()} "
+        values = ", ".join(str(v) for v in np.asarray(controls[row]))  # in its own dtype
+        raise ValueError(f"{where} row {row} is [{values}] "
                          f"({int(bad_rows.sum())} of {shape[0]} rows hold NaN or inf); "
                          "expected finite controls in every row")
 

@@ -122,11 +122,32 @@ def _check_increasing(source, name, times):
 
 
 def _as_float(source, name, value):
+    """``value`` as float64; bool, complex, text and object arrays are refused by name (a
+    bool or complex array would otherwise be cast silently: True -> 1.0, imaginary part lost)."""
     try:
-        return np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        _fail(source, f"'{name}' is not numeric (dtype {np.asarray(value).dtype}); "
-                      "expected a float array")
+        array = np.asarray(value)
+    except (TypeError, ValueError) as error:  # e.g. a ragged list
+        _fail(source, f"'{name}' is not an array ({error}); expected a float array")
+    if array.dtype.kind not in "fiu":
+        _fail(source, f"'{name}' is not numeric (dtype {array.dtype}); expected a float array "
+                      "(float or integer values; not bool, complex or text)")
+    return array.astype(np.float64)
+
+
+def _check_version(source, value) -> int:
+    """The integer scalar ``format_version`` (an integral float such as 1.0 is accepted)."""
+    array = np.asarray(value)
+    integral = array.dtype.kind in "iu" or (
+        array.dtype.kind == "f" and array.ndim == 0 and bool(np.isfinite(array))
+        and float(array).is_integer())
+    if array.ndim != 0 or not integral:
+        shown = f"{array.tolist()!r} " if array.size <= 6 else ""
+        _fail(source, f"'format_version' is {shown}(shape {array.shape}, dtype {array.dtype}); "
+                      f"expected the integer scalar {FORMAT_VERSION}")
+    version = int(array)
+    if version != FORMAT_VERSION:
+        _fail(source, f"format_version {version} is not supported; expected {FORMAT_VERSION}")
+    return version
 
 
 def _check_pair(source, log, first, second):
@@ -138,9 +159,7 @@ def _check_pair(source, log, first, second):
 
 def _check_core(source: str, log: RobotLog) -> dict:
     fields = {}
-    version = int(np.asarray(log.format_version))
-    if version != FORMAT_VERSION:
-        _fail(source, f"format_version {version} is not supported; expected {FORMAT_VERSION}")
+    version = _check_version(source, log.format_version)
     model = str(np.asarray(log.motion_model))
     if model not in MOTION_MODELS:
         _fail(source, f"unknown motion_model {model!r}; expected one of {list(MOTION_MODELS)}")

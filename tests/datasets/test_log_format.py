@@ -154,6 +154,21 @@ INVALID = {
                     r"unknown key\(s\) \['obs_vaild'\]; expected keys among .*prefix .*'meta_'"),
     "bad version": (_set("format_version", lambda a: np.asarray(7)),
                     r"format_version 7 is not supported; expected 1"),
+    "version not a number": (_set("format_version", lambda a: np.asarray("one")),
+                             r"'format_version' is 'one' \(shape \(\), dtype <U3\); expected "
+                             r"the integer scalar 1"),
+    "version a vector": (_set("format_version", lambda a: np.asarray([1, 1])),
+                         r"'format_version' is \[1, 1\] \(shape \(2,\), dtype int64\); "
+                         r"expected the integer scalar 1"),
+    "version fractional": (_set("format_version", lambda a: np.asarray(1.5)),
+                           r"'format_version' is 1.5 .*expected the integer scalar 1"),
+    "time complex": (_set("time", lambda a: a["time"] + 1j),
+                     r"'time' is not numeric \(dtype complex128\); expected a float array "
+                     r"\(float or integer values; not bool, complex or text\)"),
+    "controls bool": (_set("controls", lambda a: np.ones((T, 3), bool)),
+                      r"'controls' is not numeric \(dtype bool\); expected a float array"),
+    "obs_z text": (_set("obs_z", lambda a: np.full((T, K, 2), "1.0")),
+                   r"'obs_z' is not numeric \(dtype <U3\); expected a float array"),
     "unknown motion model": (_set("motion_model", lambda a: np.asarray("bicycle")),
                              r"unknown motion_model 'bicycle'; expected one of \['odometry', "
                              r"'velocity', 'ackermann'\]"),
