@@ -5,7 +5,7 @@ Run:  python experiments/association.py [--runs 200]
 """
 from common import load_pipeline, parse_args, run_pipelines, write_comparison
 
-METRICS = ["final_pose_error", "map_error", "redundant", "orphan", "gospa", "update_rate_hz"]
+METRICS = ["final_pose_error", "map_error", "redundant", "orphan", "gospa"]
 
 if __name__ == "__main__":
     args = parse_args(__doc__, default_runs=200)

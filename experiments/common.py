@@ -84,12 +84,18 @@ def combined_rows(pipelines: dict, results: dict) -> dict:
     return columns
 
 
-def summary_table(columns: dict, metrics: list[str]) -> str:
-    """Markdown: per pipeline, mean / median / 95% interval of each metric."""
+def summary_table(columns: dict, metrics: list[str], throughput: dict | None = None) -> str:
+    """Markdown: per pipeline, mean / median / 95% interval of each metric, and the filter's
+    throughput (run-steps/s, from the chunks' metadata) when ``throughput`` maps pipeline
+    labels to it."""
+    from jaxslam.columns import column_unit
+
     labels = list(dict.fromkeys(columns["pipeline"]))
     pipeline = np.asarray(columns["pipeline"])
-    header = "| pipeline | runs | " + " | ".join(metrics) + " |"
-    lines = [header, "|" + "---|" * (len(metrics) + 2)]
+    throughput = throughput or {}
+    header = ("| pipeline | runs | " + " | ".join(f"{m} [{column_unit(m)}]" for m in metrics)
+              + (" | run-steps/s |" if throughput else " |"))
+    lines = [header, "|" + "---|" * (len(metrics) + 2 + bool(throughput))]
     for label in labels:
         mask = pipeline == label
         cells = []
@@ -97,6 +103,8 @@ def summary_table(columns: dict, metrics: list[str]) -> str:
             values = np.asarray([np.nan if v is None else v for v in columns[metric]], float)[mask]
             cells.append(f"{np.mean(values):.3g} / {np.median(values):.3g} "
                          f"[{np.percentile(values, 2.5):.3g}, {np.percentile(values, 97.5):.3g}]")
+        if throughput:
+            cells.append(f"{throughput.get(label, float('nan')):,.0f}")
         lines.append(f"| {label} | {int(mask.sum())} | " + " | ".join(cells) + " |")
     lines.append("")
     lines.append("Cells: mean / median [2.5%, 97.5% percentiles] across runs.")
@@ -109,8 +117,17 @@ def write_comparison(experiment: str, pipelines: dict, results: dict, metrics: l
     from jaxslam.plots import plot_sweep_boxes
 
     out = pathlib.Path(args.out) / experiment
+    from jaxslam.studies import filter_throughput
+
     columns = combined_rows(pipelines, results)
-    text = f"# {experiment}\n\n{preamble}\n\n" + summary_table(columns, metrics)
+    throughput = {}
+    for name, config in pipelines.items():
+        for condition in config.conditions:
+            suffix = ", ".join(f"{k}={v}" for k, v in condition.items())
+            label = f"{name} ({suffix})" if suffix else name
+            throughput[label] = filter_throughput(results[name].out_dir)
+    text = (f"# {experiment}\n\n{preamble}\n\n"
+            + summary_table(columns, metrics, throughput))
     (out / "table.md").write_text(text)
     for metric in metrics:
         values = {v for v in columns[metric] if v is not None}

@@ -4,7 +4,8 @@ The driver checks the output folder exactly as the local runner does (``studies.
 same study config, damaged chunks reported, foreign files warned about) and hands the chunks
 still missing to W long-lived actors, one per worker. Each actor builds one
 ``studies._ChunkRunner`` (so it compiles the simulator and the filter once and keeps them) and
-writes its own chunk files with ``studies.write_chunk`` into the shared output folder: the same
+writes its own chunk files with ``studies.write_chunk`` into the shared output folder (the
+driver, which holds the folder's lock, records each in the manifest): the same
 names and the same atomic writes as the local backend, so a study started on one backend
 resumes on the other. Run i depends only on ``fold_in(PRNGKey(seed), i)``, never on which
 actor ran it, so the results equal the local backend's bit for bit.
@@ -57,12 +58,14 @@ class StudyWorker:
         self.out_dir = pathlib.Path(out_dir)
         self.runner = studies._ChunkRunner(config)
 
-    def run_chunk(self, start: int, stop: int) -> tuple[int, int]:
-        """Simulate, filter and score runs [start, stop) and write their chunk files."""
+    def run_chunk(self, start: int, stop: int) -> tuple[int, int, list[str]]:
+        """Simulate, filter and score runs [start, stop) and write their chunk files.
+        Returns (start, stop, the paths written) for the driver to record in the manifest."""
         from jaxslam import studies
 
-        studies.write_chunk(self.out_dir, self.config, start, stop, self.runner(start, stop))
-        return start, stop
+        paths = studies.write_chunk(self.out_dir, self.config, start, stop,
+                                    self.runner(start, stop))
+        return start, stop, [str(path) for path in paths]
 
     def times(self) -> WorkerTimes:
         runner = self.runner
@@ -109,13 +112,30 @@ def run_study_ray(config, out_dir, num_workers: int = 2, address: str | None = N
     if not isinstance(num_workers, int) or num_workers < 1:
         raise ValueError(f"num_workers={num_workers!r}; expected a positive integer")
     ray = import_ray()
+    from jaxslam import studies
+    from jaxslam.study_store import study_lock
+
+    out_dir = pathlib.Path(out_dir).resolve()
+    with study_lock(out_dir):
+        pending = studies.open_study(config, out_dir)
+        times = _run_pending(ray, config, out_dir, pending, num_workers, address, progress,
+                             worker_options)
+        table = studies.load_results(out_dir)
+        studies.summarize_study(out_dir, table)
+    return studies.StudyResult(out_dir, table,
+                               max((t.compile_seconds for t in times), default=0.0),
+                               sum(t.filter_seconds for t in times),
+                               sum(t.simulator_seconds for t in times))
+
+
+def _run_pending(ray, config, out_dir, pending, num_workers, address, progress,
+                 worker_options) -> list[WorkerTimes]:
+    """Compute the pending chunks on actors; the driver records each in the manifest."""
     import jax
     from tqdm.auto import tqdm
 
-    from jaxslam import studies
+    from jaxslam.study_store import record_files
 
-    out_dir = pathlib.Path(out_dir).resolve()
-    pending = studies.open_study(config, out_dir)
     started_ray = not ray.is_initialized()
     times = []
     try:
@@ -129,7 +149,8 @@ def run_study_ray(config, out_dir, num_workers: int = 2, address: str | None = N
                        disable=not progress)
             tick = time.perf_counter()
 
-            def chunk_done(start, stop):
+            def chunk_done(start, stop, paths):
+                record_files(out_dir, paths)
                 bar.update(1)
                 bar.set_postfix(last=f"{start}-{stop}", s=f"{time.perf_counter() - tick:.1f}")
 
@@ -141,9 +162,4 @@ def run_study_ray(config, out_dir, num_workers: int = 2, address: str | None = N
     finally:
         if started_ray and ray.is_initialized():
             ray.shutdown()
-    table = studies.load_results(out_dir)
-    studies.summarize_study(out_dir, table)
-    return studies.StudyResult(out_dir, table,
-                               max((t.compile_seconds for t in times), default=0.0),
-                               sum(t.filter_seconds for t in times),
-                               sum(t.simulator_seconds for t in times))
+    return times

@@ -7,22 +7,16 @@ random numbers). Every (run, condition) pair goes through one compiled program o
 ``run_width`` (per device), so on one machine type a run's numbers are bit-identical whatever
 the chunk size, the number of runs or conditions, or the device count (``_ChunkRunner``).
 
-Output folder:
-  study.toml            the resolved study config (a resumed study must match it)
-  provenance.toml       package version, git revision, jax version, devices, start time
-  chunk-AAAAAA-BBBBBB.parquet  one row per (run, condition) of runs [A, B): run_id, condition,
-                        seed, each swept param, every metric
-  traces-AAAAAA-BBBBBB.npz     per-step position error (rows, T), run_id, condition
-  example_run.npz       run 0 / condition 0: truth, estimated path, final map
-  summary.md            the results table (``summarize_study``)
-Writes are atomic (temporary file + rename); a rerun skips every chunk already on disk.
+The results folder (layout, integrity manifest, lock, resume rules) is described in
+``jaxslam.study_store``: chunks of runs in ``runs/`` (Parquet, one row per (run, condition),
+units and the resolved config in the schema metadata), per-step traces in ``traces/``, a
+SHA-256 manifest checked on resume, and an exclusive lock while a process computes.
+``num_runs`` can grow on resume (the new runs only are computed).
 """
 from __future__ import annotations
 
-import datetime
-import os
+import json
 import pathlib
-import subprocess
 import time
 import tomllib
 import warnings
@@ -32,28 +26,32 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxslam import metrics
+from jaxslam import metrics, study_store
+from jaxslam.columns import COLUMN_UNITS, column_unit  # noqa: F401 (public here too)
 from jaxslam.filter import estimate, make_filter, scan_filter
 from jaxslam.study_config import (RunBatch, ScenarioConfig, StudyConfig,  # noqa: F401
                                   demo_study_config, load_study_config,
                                   study_config_from_dict, study_config_to_dict)
+from jaxslam.study_store import StudyError, foreign_files  # noqa: F401 (public here too)
 from jaxslam.types import Params, default_params
 
-_CHUNK_PREFIX = "chunk-"
-_KNOWN_FILES = {"study.toml", "provenance.toml", "summary.md", "example_run.npz"}
 SUMMARY_METRICS = ("final_pose_error", "ate_rmse", "ate_rmse_aligned", "map_error",
-                   "redundant", "orphan", "num_landmarks", "gospa", "pose_nees", "diverged",
-                   "update_rate_hz")
-
-
-class StudyError(RuntimeError):
-    """A study cannot run or resume safely (foreign study in the folder, corrupt chunk...)."""
+                   "redundant", "orphan", "num_landmarks", "gospa", "pose_nees", "diverged")
 
 
 def scenario_batch(config: StudyConfig, run_ids):
-    """Simulate the runs ``run_ids`` (``sims.batch.scenario_batch``; imports MuJoCo lazily)."""
+    """Simulate the runs ``run_ids`` (``sims.batch.scenario_batch``).
+
+    Analytic observations need no MuJoCo; lidar scans (MJX) import it here, and raise
+    ``sims.mujoco_loader.SimulatorNotInstalled`` (an ImportError naming the install command)
+    when it is missing.
+    """
     from sims.batch import scenario_batch as simulate
 
+    if config.scenario.observation_source == "lidar":
+        from sims.mujoco_loader import require_mujoco
+
+        require_mujoco('scenario.observation_source = "lidar" (MJX lidar scans)')
     return simulate(config, run_ids)
 
 
@@ -97,7 +95,8 @@ def _run_metrics(config: StudyConfig, key, params: Params, controls, observation
         num_resampled=jnp.sum(trace.resampled).astype(jnp.int32),
         num_dropped_births=jnp.sum(trace.num_dropped_births).astype(jnp.int32),
         num_weight_resets=jnp.sum(trace.weights_reset).astype(jnp.int32),
-        max_match_rounds=jnp.max(trace.match_rounds),
+        num_invalid_controls=jnp.sum(trace.invalid_control).astype(jnp.int32),
+        peak_match_rounds=jnp.max(trace.match_rounds),
         mean_mixture_ratio=jnp.mean(trace.mixture_ratio),
     )
     example = dict(mean_pose=trace.mean_pose, landmark_mean=est.landmark_mean,
@@ -134,132 +133,27 @@ def _group_fn(config: StudyConfig):
 
 
 # --------------------------------------------------------------------------------------------
-# Files
+# Columns
+
+def run_keys(seed: int, run_ids) -> np.ndarray:
+    """(R,) uint64: run i's PRNG key ``fold_in(PRNGKey(seed), i)``, its two 32-bit words as
+    one number (high word first), so a row names the exact randomness it came from."""
+    words = np.asarray(jax.device_get(jax.vmap(
+        lambda i: jax.random.key_data(jax.random.fold_in(jax.random.PRNGKey(seed), i)))(
+            jnp.asarray(run_ids, jnp.uint32))), np.uint64)
+    return (words[:, 0] << np.uint64(32)) | words[:, 1]
 
 
-def _chunk_name(start: int, stop: int) -> str:
-    return f"{_CHUNK_PREFIX}{start:06d}-{stop:06d}.parquet"
-
-
-def _atomic_write(path: pathlib.Path, write) -> None:
-    tmp = path.with_name(f".tmp-{path.name}")
-    write(tmp)
-    os.replace(tmp, path)
-
-
-def _git_revision() -> str:
-    try:
-        root = pathlib.Path(__file__).resolve().parent.parent
-        return subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], check=True,
-                              capture_output=True, text=True, timeout=5).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
-def _provenance() -> dict:
-    from jaxslam import __version__
-
-    return dict(jaxslam_version=__version__, git_revision=_git_revision(),
-                jax_version=jax.__version__, backend=jax.default_backend(),
-                devices=[str(d) for d in jax.devices()],
-                started=datetime.datetime.now(datetime.timezone.utc).isoformat())
-
-
-def _flatten(data: dict, prefix: str = "") -> dict:
+def _sweep_columns(config: StudyConfig) -> dict:
+    """Swept setting -> (G,) column; a vector field gives one column per component,
+    ``name[j]``."""
     out = {}
-    for key, value in data.items():
-        if isinstance(value, dict):
-            out.update(_flatten(value, f"{prefix}{key}."))
+    for name, _ in config.sweep:
+        values = np.asarray([c[name] for c in config.conditions], float)
+        if values.ndim == 1:
+            out[name] = values
         else:
-            out[f"{prefix}{key}"] = value
-    return out
-
-
-def _config_differences(old: dict, new: dict) -> list[str]:
-    """"key: folder X, this config Y" for every key whose value differs."""
-    old, new = _flatten(old), _flatten(new)
-    lines = []
-    for key in sorted(set(old) | set(new)):
-        if old.get(key, _MISSING) != new.get(key, _MISSING):
-            show = lambda v: "(absent)" if v is _MISSING else repr(v)  # noqa: E731
-            lines.append(f"{key}: folder {show(old.get(key, _MISSING))}, "
-                         f"this config {show(new.get(key, _MISSING))}")
-    return lines
-
-
-_MISSING = object()
-
-
-def _prepare_out_dir(config: StudyConfig, out_dir: pathlib.Path) -> None:
-    """Create or check the folder: a different study there is an error, never overwritten.
-
-    ``config`` has been validated when it was built (``StudyConfig`` refuses a bad value),
-    so study.toml is only ever written for a config that can run.
-    """
-    import tomli_w
-
-    resolved_dict = study_config_to_dict(config)
-    resolved = tomli_w.dumps(resolved_dict)
-    study_file = out_dir / "study.toml"
-    if study_file.exists():
-        text = study_file.read_text()
-        if text != resolved:
-            try:
-                differences = _config_differences(tomllib.loads(text), resolved_dict)
-            except tomllib.TOMLDecodeError as error:
-                differences = [f"(the folder's study.toml is not readable TOML: {error})"]
-            if differences:
-                raise StudyError(_refusal(out_dir, study_file, differences))
-    out_dir.mkdir(parents=True, exist_ok=True)
-    if not study_file.exists():
-        _atomic_write(study_file, lambda p: p.write_text(resolved))
-    for stale in out_dir.glob(".tmp-*"):
-        stale.unlink()  # our own half-written file from an interrupted run
-    _atomic_write(out_dir / "provenance.toml",
-                  lambda p: p.write_text(tomli_w.dumps(_provenance())))
-
-
-def _refusal(out_dir: pathlib.Path, study_file: pathlib.Path, differences: list[str]) -> str:
-    chunks = sorted(out_dir.glob(f"{_CHUNK_PREFIX}*.parquet"))
-    if chunks:
-        start_over = (f"it holds {len(chunks)} finished chunk(s) of that study: resume it with "
-                      f"the config in {study_file}, or choose another output folder (to start "
-                      f"over here, delete {out_dir} first)")
-    else:
-        start_over = (f"it holds no finished chunk yet: delete {study_file} to start this "
-                      "study over here, or choose another output folder")
-    return (f"{study_file} holds a different study config; resume only the same study. "
-            f"Keys that differ:\n  " + "\n  ".join(differences) + f"\n{start_over}")
-
-
-def _existing_chunk_ok(path: pathlib.Path, start: int, stop: int, num_conditions: int) -> bool:
-    """True when a finished chunk file is on disk; StudyError when it is corrupt."""
-    import pyarrow.parquet as pq
-
-    if not path.exists():
-        return False
-    try:
-        run_ids = pq.read_table(path, columns=["run_id"]).column("run_id").to_numpy()
-    except Exception as error:  # pyarrow raises several types for a damaged file
-        raise StudyError(f"{path} is not a readable Parquet chunk ({error}); move or delete it "
-                         "to recompute those runs") from error
-    expected = np.repeat(np.arange(start, stop)[None], num_conditions, 0).ravel()
-    if not np.array_equal(np.sort(run_ids), np.sort(expected)):
-        raise StudyError(f"{path} does not hold runs {start}..{stop - 1} x {num_conditions} "
-                         "conditions; it belongs to another study: move or delete it")
-    return True
-
-
-def foreign_files(out_dir: pathlib.Path) -> list[str]:
-    """Files in the output folder that a study did not write (reported, never touched)."""
-    out = []
-    for path in sorted(pathlib.Path(out_dir).iterdir()):
-        name = path.name
-        ours = (name in _KNOWN_FILES or name.endswith(".png")
-                or (name.startswith(_CHUNK_PREFIX) and name.endswith(".parquet"))
-                or (name.startswith("traces-") and name.endswith(".npz")))
-        if not ours:
-            out.append(name)
+            out.update({f"{name}[{j}]": values[:, j] for j in range(values.shape[1])})
     return out
 
 
@@ -278,19 +172,38 @@ class StudyResult(NamedTuple):
     simulator_seconds: float
 
 
-def _chunk_rows(config, start, stop, values, seconds) -> dict:
-    num_runs = stop - start
-    conditions = config.conditions
-    rows = {"run_id": np.tile(np.arange(start, stop), len(conditions)),
-            "condition": np.repeat(np.arange(len(conditions)), num_runs),
-            "seed": np.full(num_runs * len(conditions), config.seed)}
-    for name, _ in config.sweep:
-        rows[name] = np.repeat([c[name] for c in conditions], num_runs).astype(float)
+def _chunk_rows(config, start, stop, values) -> dict:
+    """Columns of the chunk [start, stop): one row per (condition, run), conditions outer."""
+    num_runs, num_conditions = stop - start, len(config.conditions)
+    run_ids = np.arange(start, stop)
+    rows = {"run_id": np.tile(run_ids, num_conditions),
+            "condition": np.repeat(np.arange(num_conditions), num_runs),
+            "study_seed": np.full(num_runs * num_conditions, config.seed),
+            "run_key": np.tile(run_keys(config.seed, run_ids), num_conditions)}
+    for name, column in _sweep_columns(config).items():
+        rows[name] = np.repeat(column, num_runs)
     for name, value in values.items():
         rows[name] = np.asarray(value).reshape(-1)
-    rate = num_runs * len(conditions) * config.scenario.num_steps / max(seconds, 1e-9)
-    rows["update_rate_hz"] = np.full(num_runs * len(conditions), rate)
     return rows
+
+
+def _chunk_table(config, start, stop, values, seconds):
+    """The chunk's pyarrow Table: units per field, and in the schema metadata the units, the
+    resolved study config and the chunk's timing (timing lives here, not in a per-run column:
+    it is one measurement of the whole chunk)."""
+    import pyarrow as pa
+    import tomli_w
+
+    rows = _chunk_rows(config, start, stop, values)
+    fields = [pa.field(name, pa.array(column).type, metadata={"unit": column_unit(name)})
+              for name, column in rows.items()]
+    pairs = (stop - start) * len(config.conditions)
+    metadata = {"jaxslam.units": json.dumps({n: column_unit(n) for n in rows}),
+                "jaxslam.study": tomli_w.dumps(study_config_to_dict(config)),
+                "jaxslam.filter_seconds": repr(float(seconds)),
+                "jaxslam.update_rate_hz": repr(pairs * config.scenario.num_steps
+                                               / max(seconds, 1e-9))}
+    return pa.table(rows, schema=pa.schema(fields, metadata=metadata))
 
 
 class ChunkOutput(NamedTuple):
@@ -306,6 +219,20 @@ class ChunkOutput(NamedTuple):
     errors: Any
     example: dict
     seconds: float
+
+
+_COMPILED: dict = {}  # program key -> compiled study program (oldest first)
+_MAX_COMPILED = 8
+
+
+def _program_key(config: StudyConfig, device, args) -> tuple:
+    """What a compiled group program depends on: the config (but not the number of runs or
+    the chunk size), the device, the arguments' shapes and dtypes, and x64 mode."""
+    identity = {k: v for k, v in study_config_to_dict(config).items()
+                if k not in study_store.RESUMABLE_KEYS}
+    identity = json.dumps(identity, sort_keys=True, default=repr)
+    shapes = tuple((leaf.shape, str(leaf.dtype)) for leaf in jax.tree.leaves(args))
+    return identity, str(device), shapes, bool(jax.config.jax_enable_x64)
 
 
 class _ChunkRunner:
@@ -337,22 +264,33 @@ class _ChunkRunner:
 
     def _compile(self, groups_args: list) -> None:
         """Compile the program for the devices of ``groups_args`` that lack it (lowered here,
-        compiled in parallel threads: XLA releases the GIL while it compiles)."""
+        compiled in parallel threads: XLA releases the GIL while it compiles). Programs are
+        kept per process (``_COMPILED``), so resuming or growing a study in the same process
+        does not compile again."""
         from concurrent.futures import ThreadPoolExecutor
 
         lowered = {}
         for device, args in groups_args:
-            if device not in self.compiled and device not in lowered:
-                lowered[device] = self.function.lower(*args)
+            if device in self.compiled or device in lowered:
+                continue
+            key = _program_key(self.config, device, args)
+            if key in _COMPILED:
+                self.compiled[device] = _COMPILED[key]
+            else:
+                lowered[device] = (key, self.function.lower(*args))
         if not lowered:
             return
         tick = time.perf_counter()
+        compile_one = lambda item: item[1].compile()  # noqa: E731
         if len(lowered) == 1:  # one device: no thread needed
-            self.compiled.update({device: low.compile() for device, low in lowered.items()})
+            programs = [compile_one(item) for item in lowered.values()]
         else:
             with ThreadPoolExecutor(len(lowered)) as pool:
-                self.compiled.update(zip(lowered, pool.map(lambda low: low.compile(),
-                                                           lowered.values())))
+                programs = list(pool.map(compile_one, lowered.values()))
+        for (device, (key, _)), program in zip(lowered.items(), programs):
+            self.compiled[device] = _COMPILED[key] = program
+        while len(_COMPILED) > _MAX_COMPILED:
+            _COMPILED.pop(next(iter(_COMPILED)))
         self.compile_seconds += time.perf_counter() - tick
 
     def __call__(self, start: int, stop: int) -> ChunkOutput:
@@ -408,60 +346,63 @@ def recompute_runs(config: StudyConfig, start: int, stop: int) -> ChunkOutput:
 
 
 def open_study(config: StudyConfig, out_dir) -> list[tuple[int, int]]:
-    """Create or check ``out_dir`` for ``config``, warn about foreign files, and return the
-    run ranges [start, stop) of the chunks not yet on disk.
+    """Create or check ``out_dir`` for ``config``, verify its finished chunks, warn about
+    foreign files, and return the run ranges [start, stop) still to compute.
 
-    Raises StudyError for a different study in the folder or a damaged chunk, before anything
-    is computed. Every backend starts here, so chunk names and resume rules are shared.
+    Raises StudyError for a different study in the folder, before anything is computed or
+    written. Chunks that fail verification are moved aside and recomputed
+    (``study_store.finished_chunks``). The caller holds ``study_store.study_lock(out_dir)``.
+    Every backend starts here, so chunk names and resume rules are shared.
     """
     out_dir = pathlib.Path(out_dir)
-    _prepare_out_dir(config, out_dir)
+    study_store.prepare_out_dir(study_config_to_dict(config), out_dir)
     strangers = foreign_files(out_dir)
     if strangers:
         warnings.warn(f"{out_dir} holds files this study did not write (left untouched): "
                       f"{strangers}")
-    num_conditions = len(config.conditions)
-    bounds = [(start, min(start + config.chunk_size, config.num_runs))
-              for start in range(0, config.num_runs, config.chunk_size)]
-    return [(start, stop) for start, stop in bounds
-            if not _existing_chunk_ok(out_dir / _chunk_name(start, stop), start, stop,
-                                      num_conditions)]
+    done = study_store.finished_chunks(out_dir, config.num_runs)
+    return study_store.pending_chunks(done, config.num_runs, config.chunk_size)
 
 
 def write_chunk(out_dir, config: StudyConfig, start: int, stop: int,
-                output: ChunkOutput) -> None:
-    """Write the files of the finished runs [start, stop): traces, the example run (first
-    chunk only), then the chunk file. Each write is atomic and the chunk file comes last, so
-    its presence marks the chunk (and its traces) done; safe from any process or host that
-    shares the folder."""
-    import pyarrow as pa
+                output: ChunkOutput) -> list[pathlib.Path]:
+    """Write the files of the finished runs [start, stop): traces, the example run (the chunk
+    holding run 0 only), then the chunk file, each atomically. Returns their paths, for the
+    lock holder to record in the manifest (``study_store.record_files``); until then the
+    chunk does not count as done."""
     import pyarrow.parquet as pq
 
     out_dir = pathlib.Path(out_dir)
-    rows = _chunk_rows(config, start, stop, output.values, output.seconds)
+    table = _chunk_table(config, start, stop, output.values, output.seconds)
     errors = np.asarray(output.errors)
-    np_errors = errors.reshape(-1, errors.shape[-1])
-    _atomic_write(out_dir / f"traces-{start:06d}-{stop:06d}.npz",
-                  lambda p: _save_npz(p, run_id=rows["run_id"], condition=rows["condition"],
-                                      pose_error=np_errors))
+    traces = study_store.traces_path(out_dir, start, stop)
+    study_store.atomic_write(traces, lambda p: _save_npz(
+        p, run_id=table.column("run_id").to_numpy(),
+        condition=table.column("condition").to_numpy(),
+        pose_error=errors.reshape(-1, errors.shape[-1])))
+    written = [traces]
     if start == 0:
-        _write_example(out_dir, output.scenario, output.example)
-    _atomic_write(out_dir / _chunk_name(start, stop), lambda p: pq.write_table(pa.table(rows), p))
+        written.append(_write_example(out_dir, output.scenario, output.example))
+    chunk = study_store.chunk_path(out_dir, start, stop)
+    study_store.atomic_write(chunk, lambda p: pq.write_table(table, p))
+    return written + [chunk]
 
 
 def run_study(config: StudyConfig, out_dir, progress: bool = True) -> StudyResult:
-    """Run (or resume) a study; see the module docstring for what lands in ``out_dir``."""
+    """Run (or resume) a study; see ``jaxslam.study_store`` for what lands in ``out_dir``."""
     from tqdm.auto import tqdm
 
     out_dir = pathlib.Path(out_dir)
     runner = _ChunkRunner(config)  # anything it refuses is refused before a file is written
-    pending = open_study(config, out_dir)
-    bar = tqdm(pending, desc=f"study {config.name}", unit="chunk", disable=not progress)
-    for start, stop in bar:
-        write_chunk(out_dir, config, start, stop, runner(start, stop))
-        bar.set_postfix(runs=stop, filter_s=f"{runner.filter_seconds:.1f}")
-    table = load_results(out_dir)
-    summarize_study(out_dir, table)
+    with study_store.study_lock(out_dir):
+        pending = open_study(config, out_dir)
+        bar = tqdm(pending, desc=f"study {config.name}", unit="chunk", disable=not progress)
+        for start, stop in bar:
+            study_store.record_files(out_dir, write_chunk(out_dir, config, start, stop,
+                                                          runner(start, stop)))
+            bar.set_postfix(runs=stop, filter_s=f"{runner.filter_seconds:.1f}")
+        table = load_results(out_dir)
+        summarize_study(out_dir, table)
     return StudyResult(out_dir, table, runner.compile_seconds, runner.filter_seconds,
                        runner.simulator_seconds)
 
@@ -471,29 +412,60 @@ def _save_npz(path: pathlib.Path, **arrays) -> None:
         np.savez(handle, **arrays)
 
 
-def _write_example(out_dir: pathlib.Path, scenario, example) -> None:
+def _write_example(out_dir: pathlib.Path, scenario, example) -> pathlib.Path:
     first = {name: np.asarray(value)[0, 0] for name, value in example.items()}
-    _atomic_write(out_dir / "example_run.npz", lambda p: _save_npz(
+    path = out_dir / "example_run.npz"
+    study_store.atomic_write(path, lambda p: _save_npz(
         p, truth_pose=np.asarray(scenario.truth_pose),
         tree_centres=np.asarray(scenario.tree_centres),
         tree_radii=np.asarray(scenario.tree_radii),
         tree_seen=np.asarray(scenario.tree_seen[0]), **first))
+    return path
 
 
 def load_results(out_dir):
-    """All finished chunks of a study as one pyarrow.Table, sorted by (condition, run_id)."""
+    """All finished chunks of a study (``out_dir/runs``) as one pyarrow.Table, sorted by
+    (condition, run_id)."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    paths = sorted(pathlib.Path(out_dir).glob(f"{_CHUNK_PREFIX}*.parquet"))
+    paths = sorted((pathlib.Path(out_dir) / study_store.RUNS_DIR).glob("chunk-*.parquet"))
     if not paths:
-        raise StudyError(f"no result chunks in {out_dir}")
-    table = pa.concat_tables([pq.read_table(p) for p in paths])
+        raise StudyError(f"no result chunks in {pathlib.Path(out_dir) / study_store.RUNS_DIR}")
+    tables = [pq.read_table(p) for p in paths]
+    table = pa.concat_tables([t.replace_schema_metadata(tables[0].schema.metadata)
+                              for t in tables])
     return table.sort_by([("condition", "ascending"), ("run_id", "ascending")])
 
 
+def filter_throughput(out_dir) -> float:
+    """Run-steps per second of the filter over the study's chunks (from their metadata)."""
+    import pyarrow.parquet as pq
+
+    steps = seconds = 0.0
+    for path in sorted((pathlib.Path(out_dir) / study_store.RUNS_DIR).glob("chunk-*.parquet")):
+        metadata = pq.read_schema(path).metadata or {}
+        chunk_seconds = float(metadata.get(b"jaxslam.filter_seconds", b"nan"))
+        seconds += chunk_seconds
+        steps += float(metadata.get(b"jaxslam.update_rate_hz", b"nan")) * chunk_seconds
+    return steps / seconds if seconds > 0 else float("nan")
+
+
+def _mean_interval(values: np.ndarray) -> tuple[float, float]:
+    """95% confidence interval of the mean: mean -/+ t_{0.975, n-1} s / sqrt(n) (Student t;
+    NaN for fewer than 2 runs). It says how well the runs pin the mean, not their spread."""
+    from scipy import stats
+
+    n = len(values)
+    if n < 2:
+        return float("nan"), float("nan")
+    half = stats.t.ppf(0.975, n - 1) * np.std(values, ddof=1) / np.sqrt(n)
+    return float(np.mean(values) - half), float(np.mean(values) + half)
+
+
 def summary_rows(config: StudyConfig, table) -> list[dict]:
-    """Per condition and metric: mean, median and the 2.5-97.5 percentile interval."""
+    """Per condition and metric: unit, runs, mean with its 95% confidence interval, median,
+    and the 2.5 and 97.5 percentiles of the runs."""
     rows = []
     columns = {name: table.column(name).to_numpy() for name in table.column_names}
     for index, condition in enumerate(config.conditions):
@@ -502,11 +474,13 @@ def summary_rows(config: StudyConfig, table) -> list[dict]:
             if name not in columns:
                 continue
             values = columns[name][mask].astype(float)
+            ci_low, ci_high = _mean_interval(values)
             rows.append(dict(condition=index, setting=_setting_label(condition), metric=name,
-                             runs=int(mask.sum()), mean=float(np.mean(values)),
+                             unit=column_unit(name), runs=int(mask.sum()),
+                             mean=float(np.mean(values)), ci_low=ci_low, ci_high=ci_high,
                              median=float(np.median(values)),
-                             low=float(np.percentile(values, 2.5)),
-                             high=float(np.percentile(values, 97.5))))
+                             p2_5=float(np.percentile(values, 2.5)),
+                             p97_5=float(np.percentile(values, 97.5))))
     return rows
 
 
@@ -515,7 +489,7 @@ def _setting_label(condition: dict) -> str:
 
 
 def summarize_study(out_dir, table=None) -> str:
-    """Write ``summary.md`` (a Markdown table) and return it."""
+    """Write ``summary.md`` (a Markdown table with units) and return it."""
     out_dir = pathlib.Path(out_dir)
     with open(out_dir / "study.toml", "rb") as handle:
         config = study_config_from_dict(tomllib.load(handle))
@@ -523,13 +497,19 @@ def summarize_study(out_dir, table=None) -> str:
     lines = [f"# Study `{config.name}`", "",
              f"{config.num_runs} runs per condition; P={config.filter.num_particles}, "
              f"association={config.filter.association}, boundary={config.filter.boundary}, "
-             f"proposal={config.filter.proposal}.", "",
-             "| setting | metric | runs | mean | median | 95% interval |",
-             "|---|---|---|---|---|---|"]
+             f"proposal={config.filter.proposal}; filter throughput "
+             f"{filter_throughput(out_dir):,.0f} run-steps/s.", "",
+             "| setting | metric | unit | runs | mean | mean 95% CI | median | "
+             "runs 2.5% | runs 97.5% |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for row in summary_rows(config, table):
-        lines.append(f"| {row['setting']} | {row['metric']} | {row['runs']} | "
-                     f"{row['mean']:.4g} | {row['median']:.4g} | "
-                     f"[{row['low']:.4g}, {row['high']:.4g}] |")
+        lines.append(f"| {row['setting']} | {row['metric']} | {row['unit']} | {row['runs']} | "
+                     f"{row['mean']:.4g} | [{row['ci_low']:.4g}, {row['ci_high']:.4g}] | "
+                     f"{row['median']:.4g} | {row['p2_5']:.4g} | {row['p97_5']:.4g} |")
+    lines += ["", "mean 95% CI: Student-t confidence interval of the mean over runs; runs "
+              "2.5% / 97.5%: percentiles of the runs themselves (their spread). pose_nees of "
+              "a consistent filter averages 3 (chi-square, 3 degrees of freedom); far above "
+              "means overconfident. Every metric is defined in docs/metrics.md."]
     text = "\n".join(lines) + "\n"
-    _atomic_write(out_dir / "summary.md", lambda p: p.write_text(text))
+    study_store.atomic_write(out_dir / "summary.md", lambda p: p.write_text(text))
     return text

@@ -6,8 +6,8 @@ computes two studies once per module (chunk sizes 3 and 2, both a 2-value sweep)
 resume test works on copies of their folders. Killed studies, the 2-device run and the
 sweep-vs-fixed-params check run in the slow tier.
 
-"Identical" below means bit-identical: every column but ``update_rate_hz`` (a wall-clock rate)
-and every per-step error trace compared with ``assert_array_equal``.
+"Identical" below means bit-identical: every column (timing lives in the chunk metadata, not
+in a column) and every per-step error trace compared with ``assert_array_equal``.
 """
 import json
 import os
@@ -29,7 +29,6 @@ from jaxslam import studies
 
 PYTHON = sys.executable
 REPO = pathlib.Path(__file__).resolve().parent.parent
-TIMING_COLUMNS = ("update_rate_hz",)
 TINY = ["num_runs=4", "filter.num_particles=8", "filter.max_landmarks=24", "filter.max_obs=8",
         "scenario.num_steps=20", "scenario.num_trees=15", "scenario.size=30.0",
         "sweep.detection_probability=[0.8, 0.9]"]
@@ -46,7 +45,7 @@ def tiny_config(*overrides) -> studies.StudyConfig:
 def read_traces(out_dir) -> dict:
     """Per-step position errors of every (condition, run_id), from all traces-*.npz files."""
     traces = {}
-    for path in sorted(pathlib.Path(out_dir).glob("traces-*.npz")):
+    for path in sorted(pathlib.Path(out_dir).glob("traces/traces-*.npz")):
         with np.load(path) as data:
             for condition, run_id, errors in zip(data["condition"], data["run_id"],
                                                  data["pose_error"]):
@@ -57,7 +56,7 @@ def read_traces(out_dir) -> dict:
 
 
 def assert_same_results(out_a, out_b, close=None):
-    """Bit-identical rows (timing column aside) and traces in two study folders.
+    """Bit-identical rows and traces in two study folders.
 
     ``close`` maps a column to the relative tolerance it gets instead (see its callers).
     """
@@ -69,7 +68,7 @@ def assert_same_results(out_a, out_b, close=None):
         a, b = table_a.column(name).to_numpy(), table_b.column(name).to_numpy()
         if name in close:
             np.testing.assert_allclose(a, b, rtol=close[name], atol=0, err_msg=name)
-        elif name not in TIMING_COLUMNS and not np.array_equal(a, b):
+        elif not np.array_equal(a, b):
             differing.append(f"{name}: {a} != {b}")
     assert not differing, "\n".join(differing)
     traces_a, traces_b = read_traces(out_a), read_traces(out_b)
@@ -90,12 +89,12 @@ def assert_runs_once(out_dir, config):
 def file_stamps(out_dir, pattern="*") -> dict:
     """(inode, mtime) of files: an atomic rewrite changes the inode even within one tick."""
     return {p.name: (p.stat().st_ino, p.stat().st_mtime_ns)
-            for p in pathlib.Path(out_dir).glob(pattern) if p.is_file()}
+            for p in pathlib.Path(out_dir).rglob(pattern) if p.is_file()}
 
 
 def age_files(out_dir):
     """Backdate every file so that any rewrite shows in its mtime."""
-    for path in pathlib.Path(out_dir).iterdir():
+    for path in pathlib.Path(out_dir).rglob("*"):
         os.utime(path, ns=(1_000_000_000, 1_000_000_000))
 
 
@@ -195,9 +194,9 @@ def test_config_file_and_missing_file(tmp_path):
 def test_results_do_not_depend_on_chunk_size(study_3, study_2):
     config_3, out_3, result_3 = study_3
     config_2, out_2, result_2 = study_2
-    assert sorted(p.name for p in out_3.glob("chunk-*")) == [
+    assert sorted(p.name for p in out_3.glob("runs/chunk-*")) == [
         "chunk-000000-000003.parquet", "chunk-000003-000004.parquet"]
-    assert sorted(p.name for p in out_2.glob("chunk-*")) == [
+    assert sorted(p.name for p in out_2.glob("runs/chunk-*")) == [
         "chunk-000000-000002.parquet", "chunk-000002-000004.parquet"]
     for config, out in ((config_3, out_3), (config_2, out_2)):
         assert_runs_once(out, config)
@@ -215,7 +214,13 @@ def test_sweep_gives_conditions_over_the_same_runs(study_3):
         rows = [i for i, c in enumerate(table["condition"]) if c == condition]
         assert [table["run_id"][i] for i in rows] == [0, 1, 2, 3]
         assert {table["detection_probability"][i] for i in rows} == {value}
-        assert {table["seed"][i] for i in rows} == {0}
+        assert {table["study_seed"][i] for i in rows} == {0}
+        # run_key: the two words of fold_in(PRNGKey(0), run_id), one per run, equal across
+        # conditions (common random numbers).
+        keys = [jax.random.key_data(jax.random.fold_in(jax.random.PRNGKey(0), r))
+                for r in range(4)]
+        assert [table["run_key"][i] for i in rows] == [
+            (int(k[0]) << 32) | int(k[1]) for k in keys]
     # The swept parameter reaches the filter: the two conditions score differently (same
     # forests, paths and noise, so a difference can only come from the parameter).
     landmarks = np.asarray(table["num_landmarks"]).reshape(2, 4)
@@ -244,8 +249,8 @@ def test_rerun_computes_nothing_and_gives_the_same_table(study_3, tmp_path):
 def test_missing_chunk_is_recomputed_alone(study_3, tmp_path):
     config, source, _ = study_3
     out = copy_study(source, tmp_path / "out")
-    (out / "chunk-000003-000004.parquet").unlink()
-    (out / "traces-000003-000004.npz").unlink()
+    (out / "runs/chunk-000003-000004.parquet").unlink()
+    (out / "traces/traces-000003-000004.npz").unlink()
     kept = file_stamps(out, "*000000-000003*")
     again = run_quietly(config, out)
     assert again.filter_seconds > 0
@@ -257,34 +262,109 @@ def test_missing_chunk_is_recomputed_alone(study_3, tmp_path):
 def test_different_study_in_the_folder_is_refused(study_3, tmp_path):
     config, source, _ = study_3
     out = copy_study(source, tmp_path / "out")
-    before = {p.name: p.read_bytes() for p in out.iterdir()}
-    for other in (tiny_config("chunk_size=3", "seed=1"), tiny_config("chunk_size=2"),
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != "study.lock"}
+    for other in (tiny_config("chunk_size=3", "seed=1"), tiny_config("run_width=2"),
                   tiny_config("chunk_size=3", "filter.num_particles=9")):
         with pytest.raises(studies.StudyError, match="different study config"):
             studies.run_study(other, out, progress=False)
-    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert {p: p.read_bytes() for p in out.rglob("*")
+            if p.is_file() and p.name != "study.lock"} == before
 
 
-def test_corrupt_chunk_is_reported_and_not_overwritten(study_3, tmp_path):
+def _assert_moved_aside_and_recomputed(config, out, reference, damaged_name, words):
+    """Resume warns naming the file, moves it to damaged/ (kept, not deleted), recomputes."""
+    with pytest.warns(UserWarning) as caught:
+        studies.run_study(config, out, progress=False)
+    message = " ".join(str(w.message) for w in caught)
+    for word in (damaged_name, *words):
+        assert word in message, (word, message)
+    assert any(p.name.startswith(damaged_name) for p in (out / "damaged").iterdir())
+    assert_runs_once(out, config)
+    assert_same_results(out, reference)
+
+
+@pytest.mark.parametrize("damage", ["garbage", "other_runs", "one_flipped_bit", "truncated"])
+def test_damaged_chunk_is_moved_aside_and_recomputed(study_3, tmp_path, damage):
     config, source, _ = study_3
     out = copy_study(source, tmp_path / "out")
-    garbage = b"\x00not parquet\xff" * 10
-    corrupt = out / "chunk-000003-000004.parquet"
-    corrupt.write_bytes(garbage)
-    with pytest.raises(studies.StudyError, match="chunk-000003-000004.parquet"):
-        studies.run_study(config, out, progress=False)
-    assert corrupt.read_bytes() == garbage
+    chunk = out / "runs/chunk-000003-000004.parquet"
+    content = bytearray(chunk.read_bytes())
+    if damage == "garbage":
+        chunk.write_bytes(b"\x00not parquet\xff" * 10)
+    elif damage == "other_runs":  # a readable chunk of other runs
+        shutil.copyfile(out / "runs/chunk-000000-000003.parquet", chunk)
+    elif damage == "one_flipped_bit":
+        content[len(content) // 2] ^= 0x04
+        chunk.write_bytes(bytes(content))
+    else:
+        chunk.write_bytes(bytes(content[: len(content) // 2]))
+    _assert_moved_aside_and_recomputed(config, out, source, chunk.name, ["checksum mismatch"])
 
 
-def test_chunk_of_other_runs_is_reported_and_not_overwritten(study_3, tmp_path):
+@pytest.mark.parametrize("damage", ["deleted", "truncated"])
+def test_damaged_traces_file_is_moved_aside_and_recomputed(study_3, tmp_path, damage):
     config, source, _ = study_3
     out = copy_study(source, tmp_path / "out")
-    wrong = out / "chunk-000003-000004.parquet"
-    shutil.copyfile(out / "chunk-000000-000003.parquet", wrong)  # a readable chunk, wrong runs
-    content = wrong.read_bytes()
-    with pytest.raises(studies.StudyError, match="chunk-000003-000004.parquet.*runs 3..3"):
-        studies.run_study(config, out, progress=False)
-    assert wrong.read_bytes() == content
+    traces = out / "traces/traces-000000-000003.npz"
+    if damage == "deleted":
+        traces.unlink()
+        words = ["traces-000000-000003.npz is missing"]
+        damaged_name = "chunk-000000-000003.parquet"
+    else:
+        traces.write_bytes(traces.read_bytes()[:100])
+        words = ["checksum mismatch"]
+        damaged_name = traces.name
+    _assert_moved_aside_and_recomputed(config, out, source, damaged_name, words)
+
+
+def test_unreadable_manifest_recomputes_everything_to_the_same_results(study_3, tmp_path):
+    config, source, _ = study_3
+    out = copy_study(source, tmp_path / "out")
+    (out / "manifest.json").write_text("{not json")
+    _assert_moved_aside_and_recomputed(config, out, source, "chunk-000000-000003.parquet",
+                                       ["manifest.json is unreadable", "not in the manifest"])
+    assert len(list((out / "damaged").glob("chunk-*"))) == 2
+
+
+def test_second_process_on_the_folder_is_refused(study_3, tmp_path):
+    """While one process holds the study's lock, another gets a StudyError naming it; the
+    lock is free again once its holder finishes."""
+    config, source, result = study_3
+    out = copy_study(source, tmp_path / "out")
+    holder = subprocess.Popen(
+        [PYTHON, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'a+'); "
+         "fcntl.flock(f, fcntl.LOCK_EX); f.write('pid test-holder'); f.flush(); "
+         "print('locked', flush=True); time.sleep(60)", str(out / "study.lock")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(studies.StudyError, match="in use by another study process"):
+            studies.run_study(config, out, progress=False)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert run_quietly(config, out).table.equals(result.table)
+
+
+def test_num_runs_grows_on_resume_and_equals_the_larger_study(study_3, tmp_path):
+    config, source, _ = study_3
+    out = copy_study(source, tmp_path / "grown")
+    kept = file_stamps(out, "*000000-000003*") | file_stamps(out, "*000003-000004*")
+    grown_config = tiny_config("chunk_size=3", "num_runs=6")
+    grown = run_quietly(grown_config, out)
+    assert file_stamps(out, "*000000-000003*") | file_stamps(out, "*000003-000004*") == kept
+    assert sorted(p.name for p in out.glob("runs/chunk-*")) == [
+        "chunk-000000-000003.parquet", "chunk-000003-000004.parquet",
+        "chunk-000004-000006.parquet"]
+    with open(out / "study.toml", "rb") as handle:
+        assert tomllib.load(handle)["num_runs"] == 6
+    assert_runs_once(out, grown_config)
+    whole = studies.run_study(tiny_config("chunk_size=6", "num_runs=6"), tmp_path / "whole",
+                              progress=False)
+    assert_same_results(out, tmp_path / "whole")
+    assert grown.table.num_rows == whole.table.num_rows == 12
+    with pytest.raises(studies.StudyError, match="can grow on resume, not shrink"):
+        studies.run_study(tiny_config("chunk_size=3", "num_runs=2"), out, progress=False)
 
 
 def test_foreign_file_is_reported_and_left_alone(study_3, tmp_path):
@@ -303,27 +383,85 @@ def test_foreign_file_is_reported_and_left_alone(study_3, tmp_path):
 def test_leftover_temporary_file_is_cleaned(study_3, tmp_path):
     config, source, result = study_3
     out = copy_study(source, tmp_path / "out")
-    (out / ".tmp-chunk-000003-000004.parquet").write_bytes(b"half a chunk")
+    (out / "runs/.tmp-chunk-000003-000004.parquet").write_bytes(b"half a chunk")
     before = file_stamps(out, "chunk-*")
     again = run_quietly(config, out)
-    assert not list(out.glob(".tmp-*"))
+    assert not list(out.rglob(".tmp-*"))
     assert file_stamps(out, "chunk-*") == before
     assert again.table.equals(result.table)
 
 
 def test_output_folder_contents(study_3):
     config, out, _ = study_3
-    names = sorted(p.name for p in out.iterdir())
-    assert names == ["chunk-000000-000003.parquet", "chunk-000003-000004.parquet",
-                     "example_run.npz", "provenance.toml", "study.toml", "summary.md",
-                     "traces-000000-000003.npz", "traces-000003-000004.npz"]
+    names = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
+    assert names == ["example_run.npz", "manifest.json", "provenance.toml",
+                     "runs/chunk-000000-000003.parquet", "runs/chunk-000003-000004.parquet",
+                     "study.lock", "study.toml", "summary.md", "traces/traces-000000-000003.npz",
+                     "traces/traces-000003-000004.npz"]
     assert studies.foreign_files(out) == []
-    schema = pq.read_schema(out / "chunk-000000-000003.parquet")
-    for name in ("run_id", "condition", "seed", "detection_probability",
+    schema = pq.read_schema(out / "runs/chunk-000000-000003.parquet")
+    for name in ("run_id", "condition", "study_seed", "run_key", "detection_probability",
                  *studies.SUMMARY_METRICS):
         assert name in schema.names, name
-    with np.load(out / "traces-000000-000003.npz") as traces:
+    units = json.loads(schema.metadata[b"jaxslam.units"])
+    assert units["final_pose_error"] == "m" and units["rpe_rotation"] == "rad"
+    assert schema.field("ate_rmse").metadata == {b"unit": b"m"}
+    assert set(units) == set(schema.names)
+    embedded = tomllib.loads(schema.metadata[b"jaxslam.study"].decode())
+    assert studies.study_config_from_dict(embedded) == config
+    assert float(schema.metadata[b"jaxslam.update_rate_hz"]) > 0
+    with np.load(out / "traces/traces-000000-000003.npz") as traces:
         assert traces["pose_error"].shape == (2 * 3, config.scenario.num_steps)
+    manifest = json.loads((out / "manifest.json").read_text())["files"]
+    assert sorted(manifest) == [n for n in names if n.startswith(("runs/", "traces/"))
+                                or n == "example_run.npz"]
+
+
+def test_tools_read_the_runs_folder_whole(study_3):
+    """pandas and pyarrow.dataset read the study's rows straight from ``runs/``."""
+    pd = pytest.importorskip("pandas")
+    import pyarrow.dataset as ds
+
+    config, out, result = study_3
+    frame = pd.read_parquet(out / "runs").sort_values(["condition", "run_id"])
+    assert len(frame) == 2 * config.num_runs
+    np.testing.assert_array_equal(frame["final_pose_error"].to_numpy(),
+                                  result.table.column("final_pose_error").to_numpy())
+    assert ds.dataset(out / "runs").count_rows() == 2 * config.num_runs
+
+
+def test_no_measured_column_shares_a_config_key(study_3):
+    config, _, result = study_3
+    keys = {k.rsplit(".", 1)[-1] for k in studies.study_store._flatten(
+        studies.study_config_to_dict(config))}
+    keys |= set(studies.Params._fields)
+    swept = {name for name, _ in config.sweep}
+    clashes = (set(result.table.column_names) - swept) & keys
+    assert not clashes, clashes
+
+
+def test_summary_has_units_and_a_confidence_interval_of_the_mean(study_3):
+    from scipy import stats
+
+    config, out, result = study_3
+    rows = studies.summary_rows(config, result.table)
+    row = next(r for r in rows if r["metric"] == "final_pose_error" and r["condition"] == 0)
+    values = result.table.filter(pc_equal(result.table, 0)).column("final_pose_error")
+    values = values.to_numpy().astype(np.float64)
+    half = stats.t.ppf(0.975, 3) * np.std(values, ddof=1) / 2.0  # n = 4 runs
+    np.testing.assert_allclose([row["ci_low"], row["ci_high"]],
+                               [values.mean() - half, values.mean() + half], rtol=1e-12)
+    np.testing.assert_allclose([row["p2_5"], row["p97_5"]],
+                               np.percentile(values, [2.5, 97.5]), rtol=1e-12)
+    assert row["unit"] == "m"
+    text = (out / "summary.md").read_text()
+    assert "| unit |" in text and "mean 95% CI" in text and "| final_pose_error | m |" in text
+
+
+def pc_equal(table, condition):
+    import pyarrow.compute as pc
+
+    return pc.equal(table.column("condition"), condition)
 
 
 # --------------------------------------------------------------------------------------------
@@ -383,7 +521,7 @@ def run_child(tmp_path, config, out, cache, **env):
 def test_killed_study_resumes_to_the_same_results(study_2, compile_cache, tmp_path, sig):
     config, reference, _ = study_2
     out = tmp_path / "out"
-    first_chunk = out / "chunk-000000-000002.parquet"
+    first_chunk = out / "runs/chunk-000000-000002.parquet"
     child = subprocess.Popen(child_command(tmp_path, config, out, compile_cache, chunk_delay=3.0),
                              cwd=REPO, env=child_env(), stdout=subprocess.PIPE,
                              stderr=subprocess.PIPE, text=True)
@@ -404,13 +542,13 @@ def test_killed_study_resumes_to_the_same_results(study_2, compile_cache, tmp_pa
         assert "KeyboardInterrupt" in stderr
     # Killed mid-study: the first chunk only, complete, and nothing half-written under a
     # chunk name (a .tmp-* file may remain; the restart removes it).
-    assert sorted(p.name for p in out.glob("chunk-*")) == [first_chunk.name]
+    assert sorted(p.name for p in out.glob("runs/chunk-*")) == [first_chunk.name]
     assert pq.read_table(first_chunk).column("run_id").to_pylist() == [0, 1, 0, 1]
     age_files(out)
     kept = file_stamps(out, "*000000-000002*")
     run_child(tmp_path, config, out, compile_cache)
     assert file_stamps(out, "*000000-000002*") == kept  # the finished chunk was not redone
-    assert not list(out.glob(".tmp-*"))
+    assert not list(out.rglob(".tmp-*"))
     assert_runs_once(out, config)
     assert_same_results(out, reference)
 
@@ -447,7 +585,7 @@ def test_sweep_condition_equals_fixed_params_study(study_3, tmp_path):
     single = result.table.to_pydict()
     assert single["run_id"] == [0, 1, 2, 3] and set(single["condition"]) == {0}
     for name in single:
-        if name in TIMING_COLUMNS + ("condition",):
+        if name == "condition":
             continue
         expected = [swept[name][i] for i in rows]
         if name == "pose_nees":
@@ -459,3 +597,33 @@ def test_sweep_condition_equals_fixed_params_study(study_3, tmp_path):
     traces, swept_traces = read_traces(tmp_path / "fixed"), read_traces(reference)
     for run_id in range(4):
         np.testing.assert_array_equal(traces[0, run_id], swept_traces[1, run_id])
+
+
+# --------------------------------------------------------------------------------------------
+# Sweeps over a vector parameter
+
+
+def test_sweep_over_a_vector_parameter_from_toml_and_set(study_3, tmp_path):
+    """A 3-vector field swept from a TOML file equals the same sweep from --set, and runs end
+    to end: one column per component, ``name[j]``, constant within a condition."""
+    values = [[0.0, 0.06, 0.0002], [0.0, 0.12, 0.0004]]
+    base = [o for o in TINY if not o.startswith("sweep.")] + ["chunk_size=3"]
+    from_set = studies.load_study_config(None, base + [f"sweep.rot1_noise={values}"])
+    path = tmp_path / "vector.toml"
+    path.write_text(f"[sweep]\nrot1_noise = {values}\n")
+    from_file = studies.load_study_config(path, base)
+    assert from_file == from_set
+    assert from_set.conditions == [{"rot1_noise": v} for v in values]
+    np.testing.assert_allclose(studies.condition_params(from_set).rot1_noise, values, rtol=1e-6)
+    result = studies.run_study(from_set, tmp_path / "out", progress=False)
+    table = result.table.to_pydict()
+    for j in range(3):
+        expected = np.repeat([v[j] for v in values], from_set.num_runs)
+        np.testing.assert_allclose(table[f"rot1_noise[{j}]"], expected, rtol=0)
+    assert "rot1_noise" not in table
+    # The setting reaches the filter: doubled heading noise changes the runs' scores.
+    errors = np.asarray(table["final_pose_error"]).reshape(2, -1)
+    assert not np.array_equal(errors[0], errors[1])
+    assert "rot1_noise=[0.0, 0.12, 0.0004]" in (tmp_path / "out" / "summary.md").read_text()
+    with pytest.raises(ValueError, match="rot1_noise"):
+        studies.load_study_config(None, base + ["sweep.rot1_noise=[[0.0, 0.06], [0.1, 0.2]]"])

@@ -108,7 +108,7 @@ def test_failed_start_refusal_names_the_keys_and_how_to_start_over(tmp_path, mon
     out = tmp_path / "out"
     first = tiny_config()
     _failing_start(first, out, monkeypatch)
-    assert (out / "study.toml").is_file() and not list(out.glob("chunk-*"))
+    assert (out / "study.toml").is_file() and not list(out.rglob("chunk-*"))
     other = tiny_config("seed=4", "filter.num_particles=9")
     with pytest.raises(studies.StudyError) as error:
         studies.open_study(other, out)
@@ -117,7 +117,7 @@ def test_failed_start_refusal_names_the_keys_and_how_to_start_over(tmp_path, mon
                   "filter.num_particles: folder 8, this config 9", "no finished chunk",
                   f"delete {out / 'study.toml'}"):
         assert words in message, (words, message)
-    assert "chunk_size" not in message  # only the keys that differ
+    assert "chunk_size:" not in message  # only the keys that differ
     # The same config resumes; deleting study.toml starts the other study over.
     assert studies.open_study(first, out) == [(0, 2), (2, 4)]
     (out / "study.toml").unlink()
@@ -127,7 +127,8 @@ def test_failed_start_refusal_names_the_keys_and_how_to_start_over(tmp_path, mon
 def test_refusal_of_a_folder_with_results_says_to_resume_or_move(tmp_path, monkeypatch):
     out = tmp_path / "out"
     _failing_start(tiny_config(), out, monkeypatch)
-    (out / "chunk-000000-000002.parquet").write_bytes(b"stand-in")
+    (out / "runs").mkdir()
+    (out / "runs/chunk-000000-000002.parquet").write_bytes(b"stand-in")
     with pytest.raises(studies.StudyError) as error:
         studies.open_study(tiny_config("run_width=2"), out)
     message = str(error.value)

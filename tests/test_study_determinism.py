@@ -55,7 +55,7 @@ def results(out_dir) -> tuple[dict, dict]:
     """Columns of every (condition, run_id) row (sorted) and the per-step error traces."""
     table = studies.load_results(out_dir).to_pydict()
     traces = {}
-    for path in sorted(pathlib.Path(out_dir).glob("traces-*.npz")):
+    for path in sorted(pathlib.Path(out_dir).glob("traces/traces-*.npz")):
         with np.load(path) as data:
             for condition, run_id, errors in zip(data["condition"], data["run_id"],
                                                  data["pose_error"]):
@@ -99,19 +99,22 @@ def test_results_are_bit_identical_whatever_the_chunk_size(reference, tmp_path):
     config, reference_out = reference
     assert config.run_width == 1  # the default
     runner = studies._ChunkRunner(config)
+    programs_before = set(studies._COMPILED)
     folders = {}
     for chunk_size in CHUNK_SIZES[:-1]:
         chunked = with_chunk(config, chunk_size)
         folders[chunk_size] = run_with(runner, chunked, tmp_path / f"chunk{chunk_size}")
-        assert len(list(folders[chunk_size].glob("chunk-*.parquet"))) == -(-13 // chunk_size)
+        assert len(list(folders[chunk_size].glob("runs/chunk-*.parquet"))) == -(-13 // chunk_size)
     for chunk_size, out in folders.items():
         assert_bit_identical(out, reference_out)
     # A study of fewer runs holds exactly the first runs of the longer one.
     five = with_chunk(config, 2, num_runs=5)
     assert_bit_identical(run_with(runner, five, tmp_path / "five"), reference_out,
                          rows_of_b=lambda key: key[1] < 5)
-    # One compiled program for every chunk size (the runner compiled once).
-    assert runner.compile_seconds > 0 and len(runner.compiled) == 1
+    # One compiled program for every chunk size (the runner holds one, and at most one was
+    # added to the process's cache: the reference study may have compiled it already).
+    assert len(runner.compiled) == 1
+    assert len(set(studies._COMPILED) - programs_before) <= 1
 
 
 def test_wider_groups_are_bit_identical_whatever_the_chunk_size(tmp_path):
