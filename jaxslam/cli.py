@@ -1,4 +1,4 @@
-"""The ``jaxslam`` command: demo, run, study, sweep, bench, export.
+"""The ``jaxslam`` command: demo, run, calibrate, study, sweep, config, bench, export.
 
 Only the standard library is imported at module level so that ``jaxslam --help`` answers fast;
 JAX, the runner, pyarrow and matplotlib are imported inside the subcommands. Errors in what the
@@ -7,16 +7,20 @@ user gave (config keys and values, files) print one line naming the problem and 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib.util
 import math
 import os
 import pathlib
 import sys
 
+from jaxslam import __version__
+
 EXIT_USAGE = 2
 _REPO_ROOT = pathlib.Path(__file__).resolve().parent.parent
 BENCHMARK_PATH = _REPO_ROOT / "benchmarks" / "filter_step.py"
 TUM_HEADER = "# timestamp x y z qx qy qz qw"
+
 
 
 class UsageError(ValueError):
@@ -47,6 +51,32 @@ def enable_compilation_cache() -> pathlib.Path:
     return path
 
 
+def import_mujoco_quietly() -> None:
+    """Import MuJoCo MJX now if it is installed, without the two "Failed to import warp" lines
+    it prints to stdout when the optional NVIDIA Warp backend is absent (anything else printed
+    passes on). Does nothing when MuJoCo is not installed.
+
+    The simulator imports MuJoCo this quietly by itself when it first needs it
+    (``sims.mujoco_loader``); this is for code that imports ``mujoco`` directly.
+    """
+    from sims.mujoco_loader import import_quietly
+
+    with contextlib.suppress(ImportError):
+        import_quietly("mujoco.mjx")
+
+
+@contextlib.contextmanager
+def simulator_errors():
+    """Run simulator code: MuJoCo missing (``sims.mujoco_loader.SimulatorNotInstalled``, whose
+    message names the install command) becomes a one-line ``UsageError``."""
+    from sims.mujoco_loader import SimulatorNotInstalled
+
+    try:
+        yield
+    except SimulatorNotInstalled as error:
+        raise UsageError(str(error)) from error
+
+
 def _user_errors() -> tuple:
     """Exception types that mean "bad input" (reported in one line, exit 2). Anything else is
     a bug and keeps its traceback."""
@@ -67,8 +97,18 @@ def _load_config(path, overrides):
         raise UsageError(str(error)) from error
 
 
-def _out_dir(args, config) -> pathlib.Path:
-    return pathlib.Path(args.out) if args.out else pathlib.Path("results") / config.name
+def _out_dir(args, config, reference=None) -> pathlib.Path:
+    """``--out``, else ``results/<name>`` for the config as its file (or the demo) defines
+    it, and ``results/<name>-<digest>`` once ``--set`` changes anything but num_runs or
+    chunk_size (``study_store.default_out_dir``): a trial run never blocks the full study."""
+    if args.out:
+        return pathlib.Path(args.out)
+    from jaxslam import studies, study_store
+
+    if reference is None:
+        reference = _load_config(getattr(args, "config", None), [])
+    return study_store.default_out_dir(config.name, studies.study_config_to_dict(config),
+                                       studies.study_config_to_dict(reference))
 
 
 def _write_plots(out_dir: pathlib.Path) -> list[str]:
@@ -84,7 +124,8 @@ def _run_and_report(config, out_dir: pathlib.Path, quiet: bool) -> int:
     enable_compilation_cache()
     print(f"study {config.name!r}: {config.num_runs} runs x {len(config.conditions)} "
           f"condition(s) -> {out_dir}", flush=True)
-    result = studies.run_study(config, out_dir, progress=not quiet)
+    with simulator_errors():
+        result = studies.run_study(config, out_dir, progress=not quiet)
     print((pathlib.Path(out_dir) / "summary.md").read_text())
     print(f"compile {result.compile_seconds:.1f} s, filter {result.filter_seconds:.1f} s, "
           f"simulator {result.simulator_seconds:.1f} s (this invocation)")
@@ -110,8 +151,8 @@ def demo_config(overrides=()):
 
 def cmd_demo(args) -> int:
     """The small default study on the simulated forest: summary table and plots."""
-    out = pathlib.Path(args.out) if args.out else pathlib.Path("results") / "demo"
-    return _run_and_report(demo_config(args.set), out, args.quiet)
+    config = demo_config(args.set)
+    return _run_and_report(config, _out_dir(args, config, reference=demo_config()), args.quiet)
 
 
 def _flatten_overrides(data: dict, prefix: str = "") -> list[str]:
@@ -151,15 +192,17 @@ def cmd_run(args) -> int:
     if args.smooth or args.visit_gap is not None or args.no_calibrate or args.params:
         raise UsageError("--smooth, --visit-gap, --no-calibrate and --params apply to a robot "
                          "log: pass --data FILE.npz too")
-    config = _load_config(args.config, list(args.set or ())
-                          + ["name=\"run\"", "num_runs=1", "chunk_size=1"])
+    one_run = ["name=\"run\"", "num_runs=1", "chunk_size=1"]
+    config = _load_config(args.config, list(args.set or ()) + one_run)
     from jaxslam import plots, studies
 
     enable_compilation_cache()
-    out = _out_dir(args, config)
-    result = studies.run_study(config, out, progress=False)
+    out = _out_dir(args, config, reference=_load_config(args.config, one_run))
+    with simulator_errors():
+        result = studies.run_study(config, out, progress=False)
     row = {name: values[0] for name, values in result.table.to_pydict().items()}
-    _print_metrics({k: v for k, v in row.items() if k not in ("run_id", "condition", "seed")})
+    _print_metrics({k: v for k, v in row.items()
+                    if k not in ("run_id", "condition", "study_seed", "run_key")})
     print(f"wrote {plots.plot_map(out / 'example_run.npz', out / 'map.png')}")
     return 0
 
@@ -190,13 +233,15 @@ def _print_calibration(info) -> None:
         print(f"  {name:<24} {text}")
 
 
-def _print_warnings(warnings) -> None:
-    for line in warnings:
+def _print_warnings(lines) -> None:
+    for line in lines:
         print(f"WARNING: {line}")
 
 
 def _run_log(args) -> int:
-    """Filter a jaxslam .npz robot log; print the metrics its ground truth allows."""
+    """Filter a jaxslam .npz robot log; print the metrics its ground truth allows; write
+    example_run.npz (with the log's timestamps), metrics.json, map.png and, when the log has
+    a truth_pose, error_vs_time.png."""
     import json
 
     import numpy as np
@@ -216,15 +261,52 @@ def _run_log(args) -> int:
     _print_metrics(run.metrics)
     _print_warnings(run.warnings)
     if log.truth_pose is None:
-        print("(the log has no truth_pose: no trajectory error to report)")
+        print("(the log has no truth_pose: no trajectory error to report, no error_vs_time.png)")
     np.savez(out / "example_run.npz", allow_pickle=False, **example)
     (out / "metrics.json").write_text(json.dumps(
         {"metrics": run.metrics, "warnings": list(run.warnings)}, indent=2) + "\n")
     from jaxslam import plots
 
+    print(f"wrote {out / 'example_run.npz'}")
     print(f"wrote {out / 'metrics.json'}")
     print(f"wrote {plots.plot_map(example, out / 'map.png', title=f'Map: {args.data}')}")
+    error_plot = _plot_log_errors(example, out / "error_vs_time.png", args.data)
+    if error_plot is not None:
+        print(f"wrote {error_plot}")
     return 0
+
+
+def log_error_traces(example: dict):
+    """``plots.Traces`` of a log run's position error per step [m] against its truth_pose:
+    condition 0 the filter's estimate, condition 1 the smoothed path when the run has one.
+    None when the example holds no truth (truth_pose with no rows)."""
+    import numpy as np
+
+    from jaxslam import plots
+
+    truth = np.asarray(example["truth_pose"], np.float64)
+    if len(truth) == 0:
+        return None
+    paths = [example["mean_pose"]]
+    if "smoothed_pose" in example:
+        paths.append(example["smoothed_pose"])
+    errors = [np.hypot(*(np.asarray(path, np.float64)[:, :2] - truth[:, :2]).T)
+              for path in paths]
+    return plots.Traces(run_id=np.zeros(len(errors), np.int64),
+                        condition=np.arange(len(errors), dtype=np.int64),
+                        pose_error=np.stack(errors))
+
+
+def _plot_log_errors(example: dict, out_png: pathlib.Path, name) -> str | None:
+    """error_vs_time.png of a log run (``log_error_traces``); None without truth."""
+    from jaxslam import plots
+
+    traces = log_error_traces(example)
+    if traces is None:
+        return None
+    labels = {0: "filter estimate (weighted mean)", 1: "smoothed path"}
+    return plots.plot_error_vs_time(traces, out_png, labels,
+                                    title=f"Position error over time: {name}")
 
 
 def _log_settings(args, log):
@@ -259,7 +341,11 @@ def _log_settings(args, log):
 
 
 def _filter_log(args, log):
-    """Run the pipeline over a log. Returns (example_run arrays, ``pipeline.LogRun``)."""
+    """Run the pipeline over a log. Returns (example_run arrays, ``pipeline.LogRun``).
+
+    The example holds the log's ``time`` (T,) [s]: row t of mean_pose (and of truth_pose and
+    smoothed_pose) is the pose at time[t], after the log's control row t.
+    """
     import jax
     import numpy as np
 
@@ -276,15 +362,15 @@ def _filter_log(args, log):
     study, filter_config, params, calibrate = _log_settings(args, log)
     run = pipeline.filter_log(log, filter_config, params, jax.random.PRNGKey(args.seed),
                               calibrate=calibrate, smooth=smooth, visit_gap=visit_gap,
-                              map_match_threshold=study.map_match_threshold,
-                              progress=print)
+                              map_match_threshold=study.map_match_threshold, progress=print)
     est = run.estimate
     truth = np.zeros((0, 3)) if log.truth_pose is None else np.asarray(log.truth_pose)
     trees = np.zeros((0, 2)) if log.truth_landmarks is None else np.asarray(log.truth_landmarks)
     example = dict(truth_pose=truth, mean_pose=run.mean_pose,
                    landmark_mean=np.asarray(est.landmark_mean),
                    landmark_cov=np.asarray(est.landmark_cov), active=np.asarray(est.active),
-                   tree_centres=trees, tree_radii=np.zeros(len(trees)))  # radii unknown: markers only
+                   tree_centres=trees, tree_radii=np.zeros(len(trees)),  # radii unknown
+                   time=np.asarray(log.time, np.float64))
     if run.smoothed_pose is not None:
         example["smoothed_pose"] = run.smoothed_pose
     return example, run
@@ -316,15 +402,114 @@ def cmd_bench(args) -> int:
     if not BENCHMARK_PATH.is_file():
         raise UsageError(f"the benchmark script {BENCHMARK_PATH} is not here (it ships with the "
                          "source tree, not the installed package); run from a source checkout")
+    import_mujoco_quietly()
     spec = importlib.util.spec_from_file_location("jaxslam_benchmark_filter_step", BENCHMARK_PATH)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     enable_compilation_cache()
     if hasattr(module, "main"):
-        result = module.main(list(args.bench_args))
+        with simulator_errors():
+            result = module.main(list(args.bench_args))
         return int(result) if isinstance(result, int) else 0
     raise UsageError(f"{BENCHMARK_PATH} defines no main(argv) function; run it directly with "
                      f"python {BENCHMARK_PATH}")
+
+
+# ------------------------------------------------------------------------------------------
+# config show
+
+from jaxslam.columns import CONFIG_UNITS, config_unit  # noqa: E402,F401 (units table)
+
+
+def toml_value(value) -> str:
+    """A config value in TOML syntax (what ``--set KEY=VALUE`` reads back): 64, 0.5, true,
+    "loop", inf, [0.0, 0.06, 0.0002]. Floats keep 6 significant digits."""
+    import json
+
+    import numpy as np
+
+    if hasattr(value, "__array__") and not isinstance(value, (list, tuple)):
+        array = np.asarray(value)  # NumPy or JAX array: a scalar or a flat list
+        value = array.item() if array.ndim == 0 else array.ravel().tolist()
+    if isinstance(value, (bool, np.bool_)):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    number = float(value)
+    if math.isnan(number):
+        return "nan"
+    if math.isinf(number):
+        return "inf" if number > 0 else "-inf"
+    text = f"{number:.6g}"
+    return text if any(c in text for c in ".e") else text + ".0"
+
+
+def config_rows(config) -> list[tuple[str, str, str, str]]:
+    """(key, value, unit, note) of every entry of a resolved study config.
+
+    Study, [filter] and [scenario] keys come from ``study_config_to_dict``; [params] lists
+    every ``Params`` field with the value the filter runs with (note "set in the config",
+    "= scenario.max_range" or "default"); [sweep] lists the swept values.
+    """
+    from jaxslam import studies
+    from jaxslam.types import default_params
+
+    data = studies.study_config_to_dict(config)
+    rows = []
+    for section in ("", "filter", "scenario"):
+        items = data[section].items() if section else (
+            (k, v) for k, v in data.items() if not isinstance(v, dict))
+        for key, value in items:
+            name = f"{section}.{key}" if section else key
+            rows.append((name, toml_value(value), config_unit(name), ""))
+    given, swept = dict(config.params), dict(config.sweep)
+    resolved = default_params(config.filter, **{"max_range": config.scenario.max_range,
+                                                **given})
+    for key, value in resolved._asdict().items():
+        note = (f"swept: see sweep.{key}" if key in swept else
+                "set in the config" if key in given else
+                "= scenario.max_range" if key == "max_range" else "default")
+        rows.append((f"params.{key}", toml_value(value), config_unit(f"params.{key}"), note))
+    for key, values in data["sweep"].items():
+        rows.append((f"sweep.{key}", toml_value(values), config_unit(f"sweep.{key}"),
+                     "swept: one condition per value"))
+    return rows
+
+
+def format_config_rows(rows) -> list[str]:
+    """Aligned "key  value  unit  # note" lines with a header."""
+    header = ("# key", "value", "unit", "")
+    widths = [max(len(row[i]) for row in [header, *rows]) for i in range(3)]
+    lines = []
+    for key, value, unit, note in [header, *rows]:
+        line = f"{key:<{widths[0]}}  {value:<{widths[1]}}  {unit:<{widths[2]}}"
+        lines.append((line + (f"  # {note}" if note else "")).rstrip())
+    return lines
+
+
+def cmd_config_show(args) -> int:
+    """Print the resolved study config: every key, its value and its unit."""
+    if args.file is None:
+        config = demo_config(args.set)
+        source = "the demo config (`jaxslam demo`)"
+    else:
+        config = _load_config(args.file, args.set)
+        source = str(args.file)
+    overrides = f" with {len(args.set)} --set override(s)" if args.set else ""
+    print(f"# study config {config.name!r}: {source}{overrides}; "
+          f"{len(config.conditions)} condition(s)")
+    print("# values in TOML syntax: each line works as --set KEY=VALUE")
+    for line in format_config_rows(config_rows(config)):
+        print(line)
+    return 0
+
+
+# ------------------------------------------------------------------------------------------
+# export
 
 
 def yaw_to_quaternion(yaw):
@@ -349,72 +534,205 @@ def tum_lines(timestamps, poses) -> list[str]:
     return [" ".join(f"{value:.9f}" for value in row) for row in rows]
 
 
-def cmd_export(args) -> int:
-    """Write the example run's true and estimated trajectories as TUM text (for evo)."""
+def _step_times(truth, estimate, dt: float):
+    """Timestamps on a step time base: truth row k is the pose after k steps when the truth
+    has one more row than the estimate (a study: row 0 is the start), else after k + 1
+    steps; estimate row t is the pose after step t + 1. Returns (truth times, estimate times).
+    """
+    import numpy as np
+
+    first = 0 if len(truth) == len(estimate) + 1 else 1
+    return ((first + np.arange(len(truth), dtype=np.float64)) * dt,
+            (1 + np.arange(len(estimate), dtype=np.float64)) * dt)
+
+
+def _example_tracks(source: pathlib.Path, dt) -> list[tuple[str, object, object]]:
+    """(name, timestamps, poses) of an example_run.npz: truth (when it has rows), estimate,
+    smoothed (when it holds smoothed_pose). A log run's own ``time`` is the time base, else
+    ``dt`` seconds per step (default 1)."""
+    import numpy as np
+
     from jaxslam import plots
 
-    results = pathlib.Path(args.results_dir)
-    source = results / "example_run.npz" if results.is_dir() else results
-    if not source.is_file():
-        raise UsageError(f"{source} does not exist; expected a study folder holding "
-                         "example_run.npz (run a study or `jaxslam run` first)")
     try:
         run = plots.load_example_run(source)
     except ValueError as error:
         raise UsageError(f"{source}: {error}") from error
-    out = pathlib.Path(args.out) if args.out else source.parent
+    with np.load(source, allow_pickle=False) as arrays:
+        extra = {name: arrays[name] for name in ("time", "smoothed_pose") if name in arrays}
+    if "time" in extra:
+        if dt is not None:
+            raise UsageError(f"--dt {dt}: {source} holds its log's own timestamps (time), which "
+                             "the export uses; leave --dt out")
+        times = np.asarray(extra["time"], np.float64)
+        if times.shape != (len(run.mean_pose),):
+            raise UsageError(f"{source}: time has shape {times.shape}; expected "
+                             f"({len(run.mean_pose)},), one timestamp per mean_pose row")
+        if len(run.truth_pose) not in (0, len(times)):
+            raise UsageError(f"{source}: truth_pose has {len(run.truth_pose)} rows; expected "
+                             f"{len(times)}, one per timestamp (or none)")
+        truth_times, estimate_times = times, times
+    else:
+        truth_times, estimate_times = _step_times(run.truth_pose, run.mean_pose,
+                                                  1.0 if dt is None else dt)
+    tracks = [("estimate", estimate_times, run.mean_pose)]
+    if len(run.truth_pose):
+        tracks.insert(0, ("truth", truth_times, run.truth_pose))
+    if "smoothed_pose" in extra:
+        smoothed = np.asarray(extra["smoothed_pose"], np.float64)
+        if smoothed.shape != run.mean_pose.shape:
+            raise UsageError(f"{source}: smoothed_pose has shape {smoothed.shape}; expected "
+                             f"{run.mean_pose.shape} like mean_pose")
+        tracks.append(("smoothed", estimate_times, smoothed))
+    return tracks
+
+
+def read_study_folder_config(folder: pathlib.Path):
+    """The ``StudyConfig`` of a study folder (its study.toml); UsageError when there is none
+    or it cannot be read."""
+    import tomllib
+
+    from jaxslam import studies
+
+    path = folder / "study.toml"
+    if not path.is_file():
+        raise UsageError(f"{path} does not exist; --run and --condition need a study folder "
+                         "(written by jaxslam demo, study or sweep)")
+    try:
+        with open(path, "rb") as handle:
+            return studies.study_config_from_dict(tomllib.load(handle))
+    except (tomllib.TOMLDecodeError, ValueError, TypeError) as error:
+        raise UsageError(f"{path}: cannot read the study config ({error})") from error
+
+
+def _check_run_and_condition(config, folder, run: int, condition: int) -> None:
+    """UsageError naming the valid range when run or condition is outside the study."""
+    if not 0 <= run < config.num_runs:
+        raise UsageError(f"--run {run} is out of range: the study in {folder} has runs 0 to "
+                         f"{config.num_runs - 1} (num_runs = {config.num_runs})")
+    conditions = config.conditions
+    if not 0 <= condition < len(conditions):
+        listed = "; ".join(f"{i}: " + (", ".join(f"{k}={v}" for k, v in c.items()) or "default")
+                           for i, c in enumerate(conditions))
+        raise UsageError(f"--condition {condition} is out of range: the study in {folder} has "
+                         f"conditions 0 to {len(conditions) - 1} ({listed})")
+
+
+def _study_run_tracks(folder: pathlib.Path, run: int, condition: int, dt):
+    """(name, timestamps, poses) of run ``run`` under condition ``condition`` of a study,
+    simulated and filtered again (``studies.recompute_runs``: the same numbers as the stored
+    ones). The time base is ``dt`` seconds per step (default 1): the simulated scenario has
+    no clock of its own."""
+    import numpy as np
+
+    config = read_study_folder_config(folder)
+    _check_run_and_condition(config, folder, run, condition)
+    from jaxslam import studies
+
+    enable_compilation_cache()
+    print(f"recomputing run {run} of {folder} (all {len(config.conditions)} condition(s))",
+          flush=True)
+    with simulator_errors():
+        output = studies.recompute_runs(config, run, run + 1)
+    truth = np.asarray(output.scenario.truth_pose, np.float64)
+    estimate = np.asarray(output.example["mean_pose"], np.float64)[condition, 0]
+    truth_times, estimate_times = _step_times(truth, estimate, 1.0 if dt is None else dt)
+    return [("truth", truth_times, truth), ("estimate", estimate_times, estimate)]
+
+
+def _write_tum(out: pathlib.Path, tracks) -> list[pathlib.Path]:
+    """Write ``<name>.tum`` per (name, timestamps, poses); print each."""
     out.mkdir(parents=True, exist_ok=True)
-    # truth row k is the pose after k steps; estimate row t is the pose after step t + 1.
-    offset = len(run.truth_pose) - len(run.mean_pose)
     written = []
-    for name, poses, first in (("truth", run.truth_pose, 0), ("estimate", run.mean_pose, offset)):
+    for name, times, poses in tracks:
         path = out / f"{name}.tum"
-        times = (first + _arange(len(poses))) * args.dt
         path.write_text("\n".join([TUM_HEADER] + tum_lines(times, poses)) + "\n")
         written.append(path)
         print(f"wrote {path} ({len(poses)} poses)")
-    print(f"compare with evo:  evo_ape tum {written[0]} {written[1]} --align")
-    return 0
+    return written
 
 
-def _arange(count: int):
+def cmd_export(args) -> int:
+    """Write a run's true and estimated trajectories (and the smoothed one when the run has
+    it) as TUM text for evo: the example run of a folder, or run I / condition C of a study."""
     import numpy as np
 
-    return np.arange(count, dtype=np.float64)
+    results = pathlib.Path(args.results_dir)
+    if args.run is not None or args.condition is not None:
+        if not results.is_dir():
+            raise UsageError(f"{results} is not a folder; --run and --condition need a study "
+                             "folder holding study.toml")
+        run, condition = args.run or 0, args.condition or 0
+        tracks = _study_run_tracks(results, run, condition, args.dt)
+        default_out = results / f"run-{run}-condition-{condition}"
+    else:
+        source = results / "example_run.npz" if results.is_dir() else results
+        if not source.is_file():
+            raise UsageError(f"{source} does not exist; expected a study folder holding "
+                             "example_run.npz (run a study or `jaxslam run` first)")
+        tracks = _example_tracks(source, args.dt)
+        default_out = source.parent
+    written = _write_tum(pathlib.Path(args.out) if args.out else default_out, tracks)
+    poses = {name: pose for name, _, pose in tracks}
+    if "truth" in poses:
+        final = float(np.hypot(*(poses["estimate"][-1, :2] - poses["truth"][-1, :2])))
+        print(f"final position error {final:.6g} m")
+        print(f"compare with evo:  evo_ape tum {written[0]} {written[1]} --align")
+    else:
+        print("(the run has no truth poses: only the estimate is written)")
+    return 0
 
 
 # ------------------------------------------------------------------------------------------
 # Parser
 
 
-def _add_common(parser: argparse.ArgumentParser, config_required: bool) -> None:
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Help that shows every option's default: "(default: X)" is added to each option's help
+    unless the text already says "(default"; a flag says "(default: off)". An option whose
+    default is None says in its own help text what happens without it."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if (not action.option_strings or action.required or "(default" in text
+                or action.default is argparse.SUPPRESS or action.default is None):
+            return text
+        if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):
+            return f"{text} (default: {'on' if action.default else 'off'})"
+        if action.default == []:
+            return f"{text} (default: none)"
+        return f"{text} (default: %(default)s)"
+
+
+def _add_common(parser: argparse.ArgumentParser, config_required: bool,
+                out_default: str = "results/<study name>") -> None:
+    """The options every study-like subcommand takes: [config], --set, --out, --quiet."""
     if config_required:
         parser.add_argument("config", help="study TOML file (sections: filter, scenario, "
                                            "params, sweep)")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config entry, e.g. --set filter.num_particles=50 "
-                             "--set params.max_range=15 (repeatable)")
-    parser.add_argument("--out", help="output folder (default: results/<study name>)")
+    _add_set(parser)
+    parser.add_argument("--out", help=f"output folder (default: {out_default}; with --set "
+                                      "changing anything but num_runs or chunk_size, "
+                                      "<that folder>-<8-digit config digest>)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="jaxslam", description="Batched FastSLAM for forestry robots: Monte Carlo "
-        "studies, sweeps and single runs.",
-        epilog="Compiled functions are cached in " + str(cache_dir()) + ".")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+def _add_set(parser: argparse.ArgumentParser) -> None:
+    """--set KEY=VALUE (repeatable)."""
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config entry, e.g. --set filter.num_particles=50 "
+                             "--set params.max_range=15 (repeatable; `jaxslam config show` "
+                             "lists every key with its unit)")
 
-    demo = sub.add_parser("demo", help="small study on the default simulated forest "
-                                        "(a few minutes on a laptop CPU): table and plots")
-    _add_common(demo, config_required=False)
-    demo.set_defaults(func=cmd_demo)
 
-    run = sub.add_parser("run", help="one run of the default scenario, or of a robot log "
+def _add_run(sub) -> None:
+    run = _subparser(sub, "run", help="one run of the default scenario, or of a robot log "
                                       "(--data FILE.npz); prints metrics, writes map.png")
-    run.add_argument("--data", help="a robot log in the jaxslam .npz format")
-    run.add_argument("--config", help="study TOML whose filter/params/scenario to use")
-    run.add_argument("--seed", type=int, default=0, help="PRNG seed for --data (default 0)")
+    run.add_argument("--data", help="a robot log in the jaxslam .npz format (default: none: "
+                                    "one run of the simulated default scenario)")
+    run.add_argument("--config", help="study TOML whose filter/params/scenario to use "
+                                      "(default: none: the built-in defaults)")
+    run.add_argument("--seed", type=int, default=0, help="PRNG seed for --data")
     run.add_argument("--smooth", action="store_true",
                      help="with --data: also smooth the best particle's history (its "
                           "associations fixed; jaxslam.smoothing) and report its errors")
@@ -422,58 +740,161 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --smooth: split each landmark into visits separated by more "
                           "than STEPS steps, tied by robust links, so the smoother can drop "
                           "wrong loop closures (smooth_path(visit_gap=...); tried on "
-                          "Victoria Park with 100 scans, about 20 s; see docs/results.md)")
+                          "Victoria Park with 100 scans, about 20 s; see docs/results.md) "
+                          "(default: none: one landmark per identity, no visits)")
     run.add_argument("--no-calibrate", action="store_true",
-                     help="with --data: run with the config's params as given (default: "
+                     help="with --data: run with the config's params as given (default: off: "
                           "calibrate them from the log first and save calibrated_params.toml)")
     run.add_argument("--params", metavar="FILE",
                      help="with --data: a params TOML file (from `jaxslam calibrate` or a "
-                          "previous run's calibrated_params.toml), used as it is")
-    _add_common(run, config_required=False)
+                          "previous run's calibrated_params.toml), used as it is (default: "
+                          "none: calibrate, or the config's params with --no-calibrate)")
+    _add_common(run, config_required=False, out_default="results/run")
     run.set_defaults(func=cmd_run)
 
-    calibrate = sub.add_parser("calibrate", help="estimate the filter's noise and sensor "
-                                                 "settings from a robot log alone; write TOML")
+
+def _add_calibrate(sub) -> None:
+    calibrate = _subparser(sub, "calibrate", help="estimate the filter's noise and sensor "
+                                                  "settings from a robot log alone; write TOML")
     calibrate.add_argument("--data", required=True, help="a robot log in the jaxslam .npz "
-                                                          "format")
-    calibrate.add_argument("--out", required=True, help="params TOML file to write")
-    calibrate.add_argument("--config", help="study TOML whose filter/params to start from")
-    calibrate.add_argument("--seed", type=int, default=0, help="PRNG seed (default 0)")
-    calibrate.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                           help="override a config entry (repeatable)")
+                                                         "format (required)")
+    calibrate.add_argument("--out", required=True, help="params TOML file to write (required)")
+    calibrate.add_argument("--config", help="study TOML whose filter/params to start from "
+                                            "(default: none: the built-in defaults)")
+    calibrate.add_argument("--seed", type=int, default=0, help="PRNG seed")
+    _add_set(calibrate)
     calibrate.set_defaults(func=cmd_calibrate)
 
-    study = sub.add_parser("study", help="a Monte Carlo study from a TOML file")
+
+def _add_config(sub) -> None:
+    config = _subparser(sub, "config", help="show a study config: every key, its value and "
+                                            "its unit")
+    actions = config.add_subparsers(dest="config_command", metavar="ACTION", required=True)
+    show = _subparser(actions, "show", help="print the resolved study config",
+                      description="Print the resolved study config: every key (as --set "
+                      "takes it), its value in TOML\nsyntax and its unit; [params] lists every "
+                      "filter parameter with the value the filter\nruns with.")
+    show.add_argument("file", nargs="?", metavar="FILE",
+                      help="study TOML file (default: the demo config of `jaxslam demo`)")
+    _add_set(show)
+    show.set_defaults(func=cmd_config_show)
+
+
+BENCH_EPILOG = """\
+Everything after "bench" goes to the script unchanged, except a first -h/--help (this help).
+Put "--" first to pass -h/--help or anything else through explicitly.
+
+examples:
+  jaxslam bench                               the step case at (P, M, K) = (100, 64, 16)
+                                              and (1000, 128, 16)
+  jaxslam bench --batch-runs 1000 --chunk 250 also R = 1000 batched runs, 250 per chunk
+  jaxslam bench --association greedy --proposal mixture
+  jaxslam bench -- --help                     the script's own options
+
+The script ships with the source tree, not the installed package: run from a checkout."""
+
+
+def _add_bench(sub) -> None:
+    bench = _subparser(
+        sub, "bench", help="filter speed benchmark (benchmarks/filter_step.py); arguments "
+                           "pass through to the script (see bench --help)",
+        usage="jaxslam bench [-h] [--] [SCRIPT_ARG ...]", epilog=BENCH_EPILOG,
+        description="Run the filter speed benchmark benchmarks/filter_step.py: compile and "
+                    "run time apart,\nfor one filter step and, optionally, batched runs.")
+    bench.add_argument("script_args", nargs="*", metavar="SCRIPT_ARG",
+                       help="arguments for benchmarks/filter_step.py (default: none: its "
+                            "defaults; see `jaxslam bench -- --help`)")
+    bench.set_defaults(func=cmd_bench)
+
+
+def _add_export(sub) -> None:
+    export = _subparser(sub, "export", help="trajectories of a run as TUM text (for evo)")
+    export.add_argument("results_dir", help="a study or run folder (or an example_run.npz "
+                                            "file)")
+    export.add_argument("--format", choices=["tum"], default="tum", help="output format")
+    export.add_argument("--run", type=int, metavar="I",
+                        help="export run I of the study folder, simulated and filtered again "
+                             "(default: none: the stored example run, run 0 / condition 0)")
+    export.add_argument("--condition", type=int, metavar="C",
+                        help="with --run: the sweep condition (default: 0)")
+    export.add_argument("--dt", type=float, default=None,
+                        help="seconds per filter step for the timestamps of a study run "
+                             "(default: 1; a `jaxslam run --data` run uses its log's own "
+                             "timestamps instead)")
+    export.add_argument("--out", help="output folder (default: next to example_run.npz; "
+                                      "with --run: STUDY/run-I-condition-C)")
+    export.set_defaults(func=cmd_export)
+
+
+def _subparser(sub, name: str, **options) -> argparse.ArgumentParser:
+    """``sub.add_parser`` with the defaults-showing ``HelpFormatter``."""
+    return sub.add_parser(name, formatter_class=HelpFormatter, **options)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``jaxslam`` argument parser with every subcommand."""
+    parser = argparse.ArgumentParser(
+        prog="jaxslam", formatter_class=HelpFormatter,
+        description="Batched FastSLAM for forestry robots: Monte Carlo studies, sweeps and "
+                    "single runs.",
+        epilog="Compiled functions are cached in " + str(cache_dir()) + ".")
+    parser.add_argument("--version", action="version", version=f"jaxslam {__version__}",
+                        help="print the version and exit")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    demo = _subparser(sub, "demo", help="small study on the default simulated forest "
+                                        "(a few minutes on a laptop CPU): table and plots")
+    _add_common(demo, config_required=False, out_default="results/demo")
+    demo.set_defaults(func=cmd_demo)
+    _add_run(sub)
+    _add_calibrate(sub)
+    study = _subparser(sub, "study", help="a Monte Carlo study from a TOML file")
     _add_common(study, config_required=True)
     study.set_defaults(func=cmd_study)
-
-    sweep = sub.add_parser("sweep", help="a parameter sweep from a TOML file with a [sweep] "
+    sweep = _subparser(sub, "sweep", help="a parameter sweep from a TOML file with a [sweep] "
                                           "section")
     _add_common(sweep, config_required=True)
     sweep.set_defaults(func=cmd_sweep)
-
-    sub.add_parser("bench", help="filter speed benchmark (benchmarks/filter_step.py); the "
-                                 "arguments after 'bench' go to the script (try: bench --help)")
-
-    export = sub.add_parser("export", help="trajectories of a study's example run as TUM text")
-    export.add_argument("results_dir", help="study folder (or an example_run.npz file)")
-    export.add_argument("--format", choices=["tum"], default="tum", help="output format")
-    export.add_argument("--dt", type=float, default=1.0,
-                        help="seconds per filter step for the timestamps (default 1)")
-    export.add_argument("--out", help="output folder (default: next to example_run.npz)")
-    export.set_defaults(func=cmd_export)
+    _add_config(sub)
+    _add_bench(sub)
+    _add_export(sub)
     return parser
+
+
+def subcommand_parsers(parser: argparse.ArgumentParser, prefix: str = "") -> dict:
+    """{"run": parser, "config show": parser, ...}: every (nested) subcommand's parser."""
+    found = {}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, child in action.choices.items():
+                found[prefix + name] = child
+                found.update(subcommand_parsers(child, prefix + name + " "))
+    return found
+
+
+def _bench_args(argv: list[str]):
+    """Namespace for ``jaxslam bench ...`` (None after printing bench's own help): every
+    argument goes to the script, a leading "--" dropped."""
+    if argv[:1] in (["-h"], ["--help"]):
+        subcommand_parsers(build_parser())["bench"].print_help()
+        return None
+    if argv[:1] == ["--"]:
+        argv = argv[1:]
+    return argparse.Namespace(command="bench", func=cmd_bench, bench_args=list(argv))
 
 
 def main(argv=None) -> int:
     """Entry point of the ``jaxslam`` console script. Returns the exit status."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv[:1] == ["bench"]:  # everything after "bench" belongs to the benchmark script
-        args = argparse.Namespace(command="bench", func=cmd_bench, bench_args=argv[1:])
+    if argv[:1] == ["bench"]:  # the script's own options are not declared here
+        args = _bench_args(argv[1:])
+        if args is None:
+            return 0
     else:
         args = build_parser().parse_args(argv)
-    if getattr(args, "dt", 1.0) <= 0 or not math.isfinite(getattr(args, "dt", 1.0)):
-        print(f"jaxslam {args.command}: error: --dt={args.dt}; expected a positive number of "
+    dt = getattr(args, "dt", None)
+    if dt is not None and not (math.isfinite(dt) and dt > 0):
+        print(f"jaxslam {args.command}: error: --dt={dt}; expected a positive number of "
               "seconds", file=sys.stderr)
         return EXIT_USAGE
     try:

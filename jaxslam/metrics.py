@@ -63,6 +63,7 @@ def align_se2(est, truth, valid=None):
       (3,) alignment pose (x, y, theta). With no valid rows it is the identity (0, 0, 0); with
       one valid row (or all points coincident) theta = 0 and only the translation is fitted.
     """
+    est, truth = jnp.asarray(est), jnp.asarray(truth)  # NumPy float64 -> JAX's float dtype
     weight = _row_mask(est.shape[0], valid).astype(est.dtype)
     count = jnp.maximum(weight.sum(), 1.0)
     est_xy, true_xy = est[:, :2], truth[:, :2]

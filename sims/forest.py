@@ -17,9 +17,9 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
-from mujoco import mjx
+
+from sims.mujoco_loader import mjx, mujoco  # imported when first used
 
 # Diameter at breast height: a right-skewed log-normal (median 0.28 m, log-sd 0.35), typical of
 # managed conifer / rubber stands, clipped to [0.10, 0.70] m.

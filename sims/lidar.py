@@ -18,13 +18,12 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
-from mujoco import mjx
 
 from jaxslam.detect import clip_points_by_height
 from jaxslam.geometry import wrap_angle
 from sims.forest import World
+from sims.mujoco_loader import mjx, mujoco  # imported when first used
 
 # Seed 000 Table 2: range std = 0.005 * distance + 0.0 [m].
 TABLE2_RANGE_NOISE = (0.005, 0.0)

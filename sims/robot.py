@@ -29,12 +29,11 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
-from mujoco import mjx
 
 from jaxslam.geometry import wrap_angle
 from jaxslam.motion import odometry_from_poses
+from sims.mujoco_loader import mjx, mujoco  # imported when first used
 
 
 class RobotSpec(NamedTuple):

@@ -27,8 +27,13 @@ from jaxslam.detect import detect_trunks
 from jaxslam.geometry import range_bearing, wrap_angle
 from jaxslam.types import Observations, Params, default_params
 from sims.forest import Forest, random_forest, world_from_forest
-from sims.lidar import add_range_noise, beam_angles, scan_2d_full
+from sims.mujoco_loader import lazy_functions
 from sims.paths import loop_path, noisy_odometry, true_moves
+
+# sims.lidar needs MuJoCo: it is imported at the first lidar scan, so that analytic scenarios
+# run without MuJoCo installed.
+add_range_noise, beam_angles, scan_2d_full = lazy_functions(
+    "sims.lidar", "add_range_noise", "beam_angles", "scan_2d_full")
 
 SOURCES = ("analytic", "lidar")
 

@@ -321,9 +321,9 @@ def test_tiny_study_end_to_end_and_resume(tmp_path, monkeypatch, capsys):
         table = plots.read_study_table(out).to_pydict()
         pairs = sorted(zip(table["condition"], table["run_id"]))
         assert pairs == [(c, r) for c in (0, 1) for r in range(4)]
-        stamps = {p.name: p.stat().st_mtime_ns for p in out.glob("chunk-*.parquet")}
+        stamps = {p.name: p.stat().st_mtime_ns for p in out.glob("runs/chunk-*.parquet")}
         assert cli.main(args) == 0  # resume: every chunk is on disk, none rewritten
-        assert stamps == {p.name: p.stat().st_mtime_ns for p in out.glob("chunk-*.parquet")}
+        assert stamps == {p.name: p.stat().st_mtime_ns for p in out.glob("runs/chunk-*.parquet")}
         # A different study into the same folder is refused, not overwritten.
         assert cli.main(args + ["--set", "seed=1"]) == 2
         assert "different study" in capsys.readouterr().err
