@@ -1,4 +1,4 @@
-"""The mixture proposal in the divergence regime (seed 000 section 5.2; issue 5).
+"""The mixture proposal in the divergence regime (Geiser et al. 2023, section 5.2; issue 5).
 
 Accurate lidar (Table 2), odometry noise 5x Table 1, few particles. For each particle count:
 the motion proposal, the mixture with fixed phi in {0, 0.1, 0.3, 1}, and the adaptive

@@ -1,4 +1,4 @@
-"""Seed 000 section 4.1: estimate Tables 1 and 2 from simulation data.
+"""Geiser et al. 2023, section 4.1: estimate Tables 1 and 2 from simulation data.
 
 Motion: R MJX differential-drive robots (``sims.robot``, wheel-ground contact and slip) driven by
 random diversified wheel-speed commands for T intervals of 0.5 s each; (true move, encoder
@@ -206,7 +206,7 @@ def table_markdown(motion, observation, args, counts, seconds) -> str:
     def fmt(value):
         return f"{value:.3g}" if value != 0 else "0"
 
-    lines = ["# Noise-model estimation (seed 000 section 4.1, Tables 1 and 2)", "",
+    lines = ["# Noise-model estimation (Geiser et al. 2023, section 4.1, Tables 1 and 2)", "",
              "Regenerate: `.venv/bin/python experiments/noise_model.py "
              f"--robots {args.robots} --intervals {args.intervals} --friction {args.friction} "
              f"--wheel-accel {args.wheel_accel} --poses {args.poses} --method {args.method} "
@@ -278,7 +278,7 @@ def plot(motion, observation, path):
         ax.plot(distance, part.coefficients[0] * distance + part.coefficients[1], "k-",
                 label="fit")
         paper = TABLE_2[0] if label == "range" else TABLE_2[1]
-        ax.plot(distance, paper[0] * distance + paper[1], "k--", label="seed 000 Table 2")
+        ax.plot(distance, paper[0] * distance + paper[1], "k--", label="Geiser et al. 2023, Table 2")
         ax.set_xlabel("distance [m]")
         ax.set_ylabel(f"std of {label} error [{unit}]")
         ax.legend(fontsize=7)

@@ -12,15 +12,15 @@ ROOT = pathlib.Path(__file__).resolve().parent.parent
 STUDIES = [
     ("demo", "jaxslam demo", "The README's main job: 64 runs on the default simulated forest."),
     ("table3", "python experiments/table3.py",
-     "Seed 000 Table 3: centroids vs circle fits vs fits + loose boundary."),
+     "Geiser et al. 2023, Table 3: centroids vs circle fits vs fits + loose boundary."),
     ("mixture_proposal", "python experiments/mixture_proposal.py",
-     "The mixture proposal in the divergence regime (seed 000 section 5.2)."),
+     "The mixture proposal in the divergence regime (Geiser et al. 2023, section 5.2)."),
     ("association", "python experiments/association.py",
      "Stable matching vs greedy vs optimal assignment, hard vs loose boundary."),
     ("trunk_diameter", "python experiments/trunk_diameter.py",
      "Fitted trunk diameters in the final map against truth."),
     ("noise_model", "python experiments/noise_model.py",
-     "Noise-model estimation (seed 000 section 4.1, Tables 1 and 2)."),
+     "Noise-model estimation (Geiser et al. 2023, section 4.1, Tables 1 and 2)."),
     ("scaling", "python experiments/scaling.py",
      "Step time, memory and throughput against P, M and K."),
     ("victoria_park", "python experiments/victoria_park.py",
@@ -51,7 +51,7 @@ FINDINGS = {
         "redundant features (1.08 -> 0.54 per run) but leaves trees in the ring unmapped "
         "(GOSPA 2.1 -> 3.4)."),
     "trunk_diameter": (
-        "**Findings.** Circle fits give 7.6-8.3 mm mean diameter error (seed 003: 5.7 mm on "
+        "**Findings.** Circle fits give 7.6-8.3 mm mean diameter error (Yang et al. 2023: 5.7 mm on "
         "real trees with a 3D lidar); the centroid pipeline's chord/2 is off by 5.7 cm."),
     "victoria_park": (
         "**Findings.** The three targets are met. The 100 runs of the whole log at P = 100 "

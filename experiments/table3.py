@@ -1,8 +1,8 @@
-"""Seed 000 Table 3 on simulated forests: three pipelines on the same forests, paths and noise.
+"""Geiser et al. 2023, Table 3 on simulated forests: three pipelines on the same forests, paths and noise.
 
   centroid       trunk positions from cluster centroids, hard visibility boundary
   fits           trunk positions from circle fits (Kasa), hard boundary
-  fits_boundary  circle fits plus the loose-boundary airlock (seed 000 section 3.1)
+  fits_boundary  circle fits plus the loose-boundary airlock (Geiser et al. 2023, section 3.1)
 
 Run:  python experiments/table3.py [--runs 1000]
 One pipeline alone:  jaxslam study experiments/configs/table3.toml \
@@ -24,7 +24,7 @@ if __name__ == "__main__":
                  for name, extra in PIPELINES.items()}
     results = run_pipelines("table3", pipelines, args)
     write_comparison("table3", pipelines, results, METRICS, args, preamble=(
-        "Seed 000 Table 3 (paper: final pose error 2.39 / 0.21 / 0.24 m, map error "
+        "Geiser et al. 2023, Table 3 (paper: final pose error 2.39 / 0.21 / 0.24 m, map error "
         "0.81 / 0.25 / 0.14 m, redundant 5 / 0 / 0, orphan 1 / 0 / 0 for centroid / "
         "cylinder fits / fits + boundary). Simulated 2D lidar (1440 beams, 20 m, 1 cm beam "
         "noise) in a 60 m random forest of 80 trunks, loop path of 200 steps; P=30, stable "

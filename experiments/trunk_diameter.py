@@ -1,4 +1,4 @@
-"""Trunk diameter in the final map against truth, per circle-fit method (seed 003 reports
+"""Trunk diameter in the final map against truth, per circle-fit method (Yang et al. 2023 reports
 0.57 cm on real trees). Uses the Table 3 world with the loose boundary.
 
 Run:  python experiments/trunk_diameter.py [--runs 200]

@@ -115,7 +115,7 @@ def settings_line() -> str:
             f"matching over the {config.association_window} nearest landmarks, "
             f"{config.boundary} boundary, M = {config.max_landmarks}, K = {config.max_obs}; "
             f"motion noise rot {noise['rot1_noise']}, trans {noise['trans_noise']} "
-            f"(seed 000 Eq. 1); observation noise range "
+            f"(Geiser et al. 2023, Eq. 1); observation noise range "
             f"{vps.PARAM_DEFAULTS['range_noise']}, bearing {vps.PARAM_DEFAULTS['bearing_noise']}, "
             f"trunk radius std {vps.PARAM_DEFAULTS['radius_noise']} m (in association and "
             f"weights; gate {vps.PARAM_DEFAULTS['association_gate']}); "

@@ -7,7 +7,7 @@ inadmissible pairs are never formed (``+inf`` marks impossible pairs: inactive s
 outside the visible region, ...). Results are (K,) int32 arrays holding the landmark slot each
 observation is matched to, or -1. The filter batches these kernels over particles with ``vmap``.
 
-Tie rule (DESIGN.md): pairs are ordered lexicographically by ``(cost, k, m)``. An observation
+Tie rule: pairs are ordered lexicographically by ``(cost, k, m)``. An observation
 prefers the cheaper landmark, then the lower slot index; a landmark prefers the cheaper
 observation, then the lower observation index. Because both sides rank pairs by the same
 total order, the stable matching is unique; it equals the greedy "cheapest pair first"
@@ -182,7 +182,8 @@ def stable_match(cost, gate, max_rounds=None, *, rows_per_round=4) -> tuple[jax.
       cost: (K, M) pair costs, ``+inf`` where a pair is impossible.
       gate: () pairs with ``cost > gate`` are never formed.
       max_rounds: int (static or traced) bound on the rounds; None means ``K * (M + 1)``
-        (``FilterConfig.match_rounds`` is the filter's bound, K + M by default).
+        (``FilterConfig.match_rounds`` is the filter's bound, the same ``K (M + 1)`` unless
+        ``FilterConfig.max_match_rounds`` sets one).
       rows_per_round: static, rejected observations whose next choice is found per round.
 
     Returns:

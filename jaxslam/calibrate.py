@@ -1,8 +1,8 @@
-"""Noise-model estimation from data (seed 000 section 4.1, Tables 1 and 2).
+"""Noise-model estimation from data (Geiser et al. 2023, section 4.1, Tables 1 and 2).
 
 Input: S recorded pairs of a true and a measured quantity. For motion, moves (rot1, trans,
 rot2) from the true poses and from the odometry; for observations, (range, bearing) of a trunk
-from the truth and from the detector. The model to fit is seed 000 Eq. (1): the error
+from the truth and from the detector. The model to fit is Geiser et al. 2023, Eq. (1): the error
 ``e = true - measured`` is Gaussian with zero mean and a std linear in the measured move,
 
     sigma_rot1  = a1 |trans| + b1 |rot1|           + c1      (Params.rot1_noise)

@@ -1,4 +1,4 @@
-"""The ``jaxslam`` command: demo, run, calibrate, study, sweep, config, bench, export.
+"""The ``jaxslam`` command: demo, run, calibrate, convert, study, sweep, config, bench, export.
 
 Only the standard library is imported at module level so that ``jaxslam --help`` answers fast;
 JAX, the runner, pyarrow and matplotlib are imported inside the subcommands. Errors in what the
@@ -189,6 +189,9 @@ def cmd_run(args) -> int:
     """One run: of the default scenario (a one-run study), or of a robot log (--data)."""
     if args.data:
         return _run_log(args)
+    given = _topic_options_given(args)
+    if given:
+        raise UsageError(f"{given[0]} applies to a ROS bag: pass --data BAG too")
     if args.smooth or args.visit_gap is not None or args.no_calibrate or args.params:
         raise UsageError("--smooth, --visit-gap, --no-calibrate and --params apply to a robot "
                          "log: pass --data FILE.npz too")
@@ -214,14 +217,41 @@ def _print_metrics(values: dict) -> None:
         print(f"{name:<{width}}  {text}")
 
 
-def _load_robot_log(path):
+# The ROS bag options: (flag, attribute), the attribute being the load_rosbag keyword.
+_TOPIC_OPTIONS = (("--scan-topic", "scan_topic"), ("--cloud-topic", "cloud_topic"),
+                  ("--odom-topic", "odom_topic"), ("--truth-topic", "truth_topic"),
+                  ("--time-source", "time_source"))
+
+
+def _topic_options_given(args) -> list[str]:
+    """The bag options (``_TOPIC_OPTIONS``) set on the command line, as flags."""
+    return [flag for flag, name in _TOPIC_OPTIONS if getattr(args, name, None) is not None]
+
+
+def _load_robot_log(path, args=None):
+    """The ``RobotLog`` at ``path``: a ROS bag (``jaxslam.datasets.rosbag.is_rosbag_path``:
+    a .bag/.db3/.mcap name or a folder with metadata.yaml), read with the bag options of
+    ``args``, else a jaxslam .npz log. Any problem with the file becomes a one-line
+    ``UsageError``."""
     from jaxslam.datasets.log_format import LogFormatError, load_log
+    from jaxslam.datasets.rosbag import is_rosbag_path, load_rosbag
 
     try:
-        log = load_log(path)
+        if is_rosbag_path(path):
+            options = {name: getattr(args, name) for _, name in _TOPIC_OPTIONS
+                       if getattr(args, name, None) is not None}
+            log = load_rosbag(path, progress=print, **options)
+        else:
+            given = _topic_options_given(args)
+            if given:
+                raise UsageError(f"{given[0]} applies to a ROS bag (a .bag file or a ROS 2 "
+                                 f"bag folder); {path} is read as a jaxslam .npz log")
+            log = load_log(path)
         log.observations()
     except LogFormatError as error:
-        raise UsageError(str(error)) from error
+        hint = (" (nor a ROS 2 bag folder: it holds no metadata.yaml; docs/rosbag.md)"
+                if os.path.isdir(path) else "")
+        raise UsageError(f"{error}{hint}") from error
     return log
 
 
@@ -246,7 +276,7 @@ def _run_log(args) -> int:
 
     import numpy as np
 
-    log = _load_robot_log(args.data)
+    log = _load_robot_log(args.data, args)
     out = pathlib.Path(args.out) if args.out else pathlib.Path("results") / "run"
     out.mkdir(parents=True, exist_ok=True)
     example, run = _filter_log(args, log)
@@ -397,6 +427,41 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
+def cmd_convert(args) -> int:
+    """Convert a ROS bag into a jaxslam .npz log (trunks detected per scan), check that the
+    written file loads back, and print what it holds."""
+    import numpy as np
+
+    from jaxslam.datasets.log_format import LogFormatError, load_log, save_log
+    from jaxslam.datasets.rosbag import resolve_bag_path
+
+    try:
+        resolve_bag_path(args.bag)
+    except LogFormatError as error:
+        raise UsageError(str(error)) from error
+    log = _load_robot_log(args.bag, args)
+    out = pathlib.Path(args.out)
+    if out.suffix != ".npz":  # numpy.savez would add it anyway; say the real name
+        out = out.with_name(out.name + ".npz")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_log(out, log, compress=args.compress)
+    try:
+        back = load_log(out)
+    except LogFormatError as error:  # a bug, or a disk problem: say so plainly
+        raise UsageError(f"{out} was written but does not load back: {error}") from error
+    if back.num_steps != log.num_steps or not np.array_equal(back.obs_valid, log.obs_valid):
+        raise UsageError(f"{out} was written but reads back differently ({back.num_steps} "
+                         f"steps, expected {log.num_steps}); check the disk and rerun")
+    valid = int(back.obs_valid.sum())
+    span = float(back.time[-1] - back.time[0])
+    path_length = float(np.sum(back.controls[:, 1]))
+    print(f"wrote {out}: {back.num_steps} steps over {span:.1f} s, {valid} trunk detections "
+          f"({valid / back.num_steps:.1f} per scan), odometry path {path_length:.1f} m, "
+          + ("with" if back.truth_pose is not None else "without") + " truth_pose")
+    print(f"run it with: jaxslam run --data {out}")
+    return 0
+
+
 def cmd_bench(args) -> int:
     """Run ``benchmarks/filter_step.py`` (imported by path: it is not part of the package)."""
     if not BENCHMARK_PATH.is_file():
@@ -472,7 +537,8 @@ def config_rows(config) -> list[tuple[str, str, str, str]]:
     for key, value in resolved._asdict().items():
         note = (f"swept: see sweep.{key}" if key in swept else
                 "set in the config" if key in given else
-                "= scenario.max_range" if key == "max_range" else "default")
+                "= scenario.max_range" if key == "max_range" else
+                "= sqrt(association_gate)" if key == "airlock_sigmas" else "default")
         rows.append((f"params.{key}", toml_value(value), config_unit(f"params.{key}"), note))
     for key, values in data["sweep"].items():
         rows.append((f"sweep.{key}", toml_value(values), config_unit(f"sweep.{key}"),
@@ -635,6 +701,7 @@ def _study_run_tracks(folder: pathlib.Path, run: int, condition: int, dt):
     with simulator_errors():
         output = studies.recompute_runs(config, run, run + 1)
     truth = np.asarray(output.scenario.truth_pose, np.float64)
+    truth = truth[0] if truth.ndim == 3 else truth  # a per-run world: this run's own path
     estimate = np.asarray(output.example["mean_pose"], np.float64)[condition, 0]
     truth_times, estimate_times = _step_times(truth, estimate, 1.0 if dt is None else dt)
     return [("truth", truth_times, truth), ("estimate", estimate_times, estimate)]
@@ -727,9 +794,11 @@ def _add_set(parser: argparse.ArgumentParser) -> None:
 
 def _add_run(sub) -> None:
     run = _subparser(sub, "run", help="one run of the default scenario, or of a robot log "
-                                      "(--data FILE.npz); prints metrics, writes map.png")
-    run.add_argument("--data", help="a robot log in the jaxslam .npz format (default: none: "
-                                    "one run of the simulated default scenario)")
+                                      "(--data FILE.npz or a ROS bag); prints metrics, writes "
+                                      "map.png")
+    run.add_argument("--data", help="a robot log: a jaxslam .npz file, a ROS 1 .bag file or a "
+                                    "ROS 2 bag folder (docs/rosbag.md) (default: none: one "
+                                    "run of the simulated default scenario)")
     run.add_argument("--config", help="study TOML whose filter/params/scenario to use "
                                       "(default: none: the built-in defaults)")
     run.add_argument("--seed", type=int, default=0, help="PRNG seed for --data")
@@ -749,8 +818,43 @@ def _add_run(sub) -> None:
                      help="with --data: a params TOML file (from `jaxslam calibrate` or a "
                           "previous run's calibrated_params.toml), used as it is (default: "
                           "none: calibrate, or the config's params with --no-calibrate)")
+    _add_topic_options(run, "with --data BAG: ")
     _add_common(run, config_required=False, out_default="results/run")
     run.set_defaults(func=cmd_run)
+
+
+def _add_topic_options(parser: argparse.ArgumentParser, prefix: str = "") -> None:
+    """The ROS bag options: --scan-topic, --cloud-topic, --odom-topic, --truth-topic,
+    --time-source (``jaxslam.datasets.load_rosbag``)."""
+    parser.add_argument("--scan-topic", metavar="TOPIC",
+                        help=f"{prefix}the sensor_msgs/LaserScan topic (default: the bag's only "
+                             "LaserScan topic)")
+    parser.add_argument("--cloud-topic", metavar="TOPIC",
+                        help=f"{prefix}a sensor_msgs/PointCloud2 topic instead, flattened to a "
+                             "scan (default: the only PointCloud2 topic when there is no "
+                             "LaserScan)")
+    parser.add_argument("--odom-topic", metavar="TOPIC",
+                        help=f"{prefix}the nav_msgs/Odometry (or PoseStamped, TF odom -> "
+                             "base_link) topic (default: the bag's only Odometry topic)")
+    parser.add_argument("--truth-topic", metavar="TOPIC",
+                        help=f"{prefix}a ground-truth pose topic (Odometry or PoseStamped) for "
+                             "truth_pose (default: none: no truth)")
+    parser.add_argument("--time-source", choices=["header", "bag"],
+                        help=f"{prefix}time messages by their header stamps or by the times "
+                             "the recorder received them (default: header)")
+
+
+def _add_convert(sub) -> None:
+    convert = _subparser(sub, "convert", help="convert a ROS bag (LaserScan or PointCloud2 + "
+                                              "odometry) into a jaxslam .npz log")
+    convert.add_argument("bag", help="a ROS 1 .bag file or a ROS 2 bag folder (metadata.yaml "
+                                     "with .db3 or .mcap files)")
+    convert.add_argument("--out", required=True, help="the .npz log to write; .npz is added "
+                                                      "when missing (required)")
+    convert.add_argument("--compress", action="store_true",
+                         help="write with numpy.savez_compressed")
+    _add_topic_options(convert)
+    convert.set_defaults(func=cmd_convert)
 
 
 def _add_calibrate(sub) -> None:
@@ -848,6 +952,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=cmd_demo)
     _add_run(sub)
     _add_calibrate(sub)
+    _add_convert(sub)
     study = _subparser(sub, "study", help="a Monte Carlo study from a TOML file")
     _add_common(study, config_required=True)
     study.set_defaults(func=cmd_study)

@@ -23,7 +23,7 @@ CONFIG_UNITS = {
     "scenario.forest": _NONE, "scenario.num_trees": _COUNT, "scenario.size": "m",
     "scenario.path": _NONE, "scenario.num_steps": _COUNT, "scenario.step_length": "m",
     "scenario.max_range": "m", "scenario.observation_source": _NONE,
-    "scenario.detection": _NONE, "scenario.odometry_noise_scale": _NONE,
+    "scenario.detection": _NONE, "scenario.odometry_noise_scale": _NONE, "scenario.world": _NONE,
     "params.rot1_noise": "rad/m, rad/rad, rad", "params.trans_noise": "m/m, m/rad, m",
     "params.rot2_noise": "rad/m, rad/rad, rad", "params.motion_outlier_probability": "probability",
     "params.motion_outlier_scale": _NONE, "params.min_translation": "m",

@@ -1,6 +1,6 @@
 """Trunk detection from a 2D scan: segmentation, per-segment circle fits, padded observations.
 
-Pipeline (seed 000 section 2, seed 004 sections 2.2-2.3), fixed shapes throughout:
+Pipeline (Geiser et al. 2023, section 2, Park and Park, sections 2.2-2.3), fixed shapes throughout:
   1. Beam b is a point p_b = r_b (cos a_b, sin a_b) when min_range < r_b < max_range.
   2. Segments are runs of points. With p the previous beam that has a point, a break precedes
      the point of beam b when more than ``max_missing_beams`` beams between p and b have no
@@ -19,10 +19,10 @@ Pipeline (seed 000 section 2, seed 004 sections 2.2-2.3), fixed shapes throughou
      of the trunk is hidden), or when the fit is not a plausible trunk (radius outside
      [min_radius, max_radius], centre not behind the arc, RMS residual > ``max_residual``).
   4. Centre and radius per segment by ``method``:
-       centroid   mean of the points (seed 000 2.1; biased toward the sensor), radius = chord/2;
-       kasa       algebraic fit min sum (x^2 + y^2 + D x + E y + F)^2 (Kasa 1976, seed 004);
+       centroid   mean of the points (Geiser et al. 2023, section 2.1; biased toward the sensor), radius = chord/2;
+       kasa       algebraic fit min sum (x^2 + y^2 + D x + E y + F)^2 (Kasa 1976, Park and Park);
        geometric  Gauss-Newton on sum (|p - c| - r)^2 started from Kasa;
-       ransac     best of ``num_hypotheses`` 3-point circles by inlier count (seed 000 2.2, in
+       ransac     best of ``num_hypotheses`` 3-point circles by inlier count (Geiser et al. 2023, section 2.2, in
                   2D), then a Kasa fit on its inliers.
   5. The ``max_obs`` nearest accepted trunks become ``Observations``: range and bearing of the
      trunk centre in the sensor frame and the radius; unused rows are invalid.
@@ -309,3 +309,7 @@ def clip_points_by_height(ranges_3d, elevations, sensor_height, max_range, z_min
     horizontal = ranges_3d * jnp.cos(elevations)
     keep = (ranges_3d < max_range) & (height >= z_min) & (height <= z_max)
     return jnp.min(jnp.where(keep, horizontal, max_range), axis=0)
+
+
+# 3D point clouds: ground, height band, clusters and RANSAC cylinder fits (jaxslam.detect3d).
+from jaxslam.detect3d import detect_trunks_3d, fit_trunks_3d  # noqa: E402,F401

@@ -2,9 +2,9 @@
 
 Symmetric 2x2 matrices are carried as their components ``(a, b, c)`` = [[a, b], [b, c]];
 general 2x2 Jacobians as ``(h00, h01, h10, h11)``. Nothing here calls ``jnp.linalg``: on this
-CPU the written-out form runs 4-8x faster (DESIGN.md performance rules).
+CPU the written-out form runs 4-8x faster.
 
-Model (seed 000 section 4, Table 2): z = h(x, m) + v, h = (range, bearing),
+Model (Geiser et al. 2023, section 4, Table 2): z = h(x, m) + v, h = (range, bearing),
 v ~ N(0, R(r)), R(r) = diag(sigma_r(r)^2, sigma_b(r)^2), sigma = max(c_dist r + c_const, floor).
 
 Shapes: ``pose`` (3,) for one particle; landmark arrays (M,); observation arrays (K,); pair

@@ -1,6 +1,6 @@
 """FastSLAM: ``make_filter(config) -> Filter(init, step)``, ``run_filter`` and ``estimate``.
 
-One step (seed 000; Montemerlo et al. 2002), for every particle i in parallel:
+One step (Geiser et al. 2023; Montemerlo et al. 2002), for every particle i in parallel:
 
 1. propose a pose x_t^i (motion model, observation proposal or their mixture, ``proposal.py``);
 2. predict every landmark's measurement, the squared Mahalanobis distance d2[k, m] of every
@@ -41,6 +41,7 @@ import jax.numpy as jnp
 
 from jaxslam import association, ekf, landmarks, proposal, resampling
 from jaxslam.geometry import wrap_angle
+from jaxslam.lineage import Lineage
 from jaxslam.motion import predict_pose, sample_motion
 from jaxslam.types import FilterConfig, FilterState, Observations, Params, Particles
 from jaxslam.validation import cast_floating, check_controls, check_params
@@ -125,22 +126,6 @@ class Estimate(NamedTuple):
     landmark_cov: jnp.ndarray
     landmark_radius: jnp.ndarray
     active: jnp.ndarray
-
-
-class Lineage(NamedTuple):
-    """Every particle's ancestry and data association per step (``record_lineage=True``).
-
-    ancestor: (T, P) int32, ``StepInfo.ancestor``; match / birth_slot: (T, P, K) int16,
-    ``StepInfo.match`` / ``StepInfo.birth_slot`` (-1: none), indexed before resampling;
-    pose: (T, P, 3) every particle's pose after the step (after resampling). Memory is
-    4 T P K + 16 T P bytes (64 MB for Victoria Park's T = 7230, P = 100, K = 18).
-    ``lineage.trace_lineage`` extracts one particle's history from it.
-    """
-
-    ancestor: jnp.ndarray
-    match: jnp.ndarray
-    birth_slot: jnp.ndarray
-    pose: jnp.ndarray
 
 
 class Trace(NamedTuple):

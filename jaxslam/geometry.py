@@ -1,7 +1,7 @@
 """Planar geometry: angle wrap, SE(2) composition, the range-bearing model and its Jacobians.
 
-All functions work elementwise on any leading shape (written for scalars or component arrays,
-DESIGN.md performance rules); none loops.
+All functions work elementwise on any leading shape (written for scalars or component
+arrays); none loops.
 """
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ LOG_2PI = 1.8378770664093453  # log(2 pi), for Gaussian log-densities
 def wrap_angle(angle):
     """Wrap to [-pi, pi) by floor arithmetic: a - 2 pi floor((a + pi) / (2 pi)).
 
-    About 9x faster than arctan2(sin, cos) on XLA:CPU (DESIGN.md).
+    About 9x faster than arctan2(sin, cos) on XLA:CPU.
     """
     return angle - TWO_PI * jnp.floor((angle + jnp.pi) / TWO_PI)
 

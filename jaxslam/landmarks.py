@@ -1,7 +1,7 @@
 """Landmark life cycle in masked slots: visibility, the loose-boundary airlock, evidence, birth,
 death. All functions act on ONE particle's map; the filter vmaps them over particles.
 
-Loose boundary (seed 000 section 3.1, Fig. 3). Near the lidar's maximum range R_max, noise
+Loose boundary (Geiser et al. 2023, section 3.1, Fig. 3). Near the lidar's maximum range R_max, noise
 can put a particle's landmark just inside the range while its tree is just beyond (the hard
 boundary then deletes the landmark), or the reverse (the hard boundary creates a twin). The
 airlock is a ring inside R_max whose width follows from the correspondence threshold:

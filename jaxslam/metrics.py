@@ -1,4 +1,4 @@
-"""Accuracy metrics for ONE run: pose errors, ATE/RPE, map error as seed 000 Table 3, NEES, GOSPA.
+"""Accuracy metrics for ONE run: pose errors, ATE/RPE, map error as Geiser et al. 2023, Table 3, NEES, GOSPA.
 
 Every function is pure, jittable and has static output shapes; callers (``studies.py``) ``vmap``
 over runs and sweep settings. Padding is handled by boolean masks, never by branches on values.
@@ -196,7 +196,7 @@ def particle_pose_moments(pose, log_weight):
 
 
 class MapMetrics(NamedTuple):
-    """Map accuracy counted as seed 000 Table 3 does (all scalars).
+    """Map accuracy counted as Geiser et al. 2023, Table 3 does (all scalars).
 
     map_error: mean over represented trees of the distance from the tree to the closest
       landmark matched to it [m]; 0 when no tree is represented (check num_trees_mapped).
@@ -256,7 +256,7 @@ def _closest_per_tree(distance, match):
 
 
 def map_metrics(est_mean, est_active, true_centres, true_valid, threshold, alignment=None):
-    """Final-map metrics of seed 000 Table 3 (see ``MapMetrics``).
+    """Final-map metrics of Geiser et al. 2023, Table 3 (see ``MapMetrics``).
 
     Args:
       est_mean: (M, 2) landmark means; est_active: (M,) bool.

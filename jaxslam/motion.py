@@ -1,4 +1,4 @@
-"""Motion models: odometry rot1-trans-rot2 (seed 000 Eq. 1), velocity and Ackermann.
+"""Motion models: odometry rot1-trans-rot2 (Geiser et al. 2023, Eq. 1), velocity and Ackermann.
 
 Every model's noise lives on the odometry decomposition of the move. A move from pose
 (x, y, theta) is a first rotation rot1, a translation trans and a second rotation rot2:
@@ -6,7 +6,7 @@ Every model's noise lives on the odometry decomposition of the move. A move from
     x' = x + trans cos(theta + rot1),  y' = y + trans sin(theta + rot1),
     theta' = theta + rot1 + rot2.
 
-Seed 000 Eq. (1): the true move is drawn around the measured one with
+Geiser et al. 2023, Eq. (1): the true move is drawn around the measured one with
 
     sigma_rot1  = a1 |trans| + b1 |rot1|          + c1      (Table 1 row 1)
     sigma_trans = a2 |trans| + b2 (|rot1|+|rot2|) + c2      (Table 1 row 2)
@@ -67,7 +67,7 @@ def apply_odometry(pose, odometry):
 
 
 def odometry_std(odometry, params: Params):
-    """Seed 000 Eq. (1) standard deviations (..., 3) of (rot1, trans, rot2)."""
+    """Geiser et al. 2023, Eq. (1) standard deviations (..., 3) of (rot1, trans, rot2)."""
     abs_rot1 = jnp.abs(odometry[..., 0])
     abs_trans = jnp.abs(odometry[..., 1])
     abs_rot2 = jnp.abs(odometry[..., 2])

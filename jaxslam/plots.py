@@ -610,11 +610,14 @@ def error_vs_time_figure(traces, labels: Mapping[int, str] | None = None,
         low, median, high = np.nanpercentile(errors, [5.0, 50.0, 95.0], axis=0)
         colour = colours(index if len(conditions) <= 10 else index / max(len(conditions) - 1, 1))
         name = (labels or {}).get(int(cond), f"condition {int(cond)}")
-        ax.fill_between(steps, low, high, color=colour, alpha=0.2, linewidth=0)
-        ax.plot(steps, median, color=colour, linewidth=1.8,
-                label=f"{name}  (median, 5-95 % band, {errors.shape[0]} runs)")
+        if errors.shape[0] == 1:  # one run: its error, no band to draw
+            ax.plot(steps, median, color=colour, linewidth=1.8, label=name)
+        else:
+            ax.fill_between(steps, low, high, color=colour, alpha=0.2, linewidth=0)
+            ax.plot(steps, median, color=colour, linewidth=1.8,
+                    label=f"{name}  (median, 5-95 % band, {errors.shape[0]} runs)")
     ax.set_xlabel("time step (filter update) [steps]")
-    ax.set_ylabel("position error of the weighted-mean pose [m]")
+    ax.set_ylabel("position error [m]")
     ax.set_xlim(steps[0], steps[-1])
     ax.set_ylim(bottom=0.0)
     ax.set_title(title, fontsize=11)

@@ -1,6 +1,6 @@
 """Pose proposals: the motion model, an observation-based proposal, and their mixture.
 
-Seed 000 section 5.2: when the lidar is far more accurate than odometry, particles drawn from
+Geiser et al. 2023, section 5.2: when the lidar is far more accurate than odometry, particles drawn from
 the motion model alone can all miss the true pose. The observation proposal (FastSLAM 2.0,
 Montemerlo et al. 2003) linearises the measurements of the matched landmarks around the motion
 prediction x_hat and samples from

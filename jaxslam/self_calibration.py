@@ -15,7 +15,8 @@ estimation use, with the particle filter as the E-step's data associator:
          * shape: fit Eq. (1) of Geiser et al., "Practical Implementation of FastSLAM for
            Forestry Robot" (ICAROB 2023), to the move residuals (x*_{t-1} (-) x*_t against the
            measured move) and Table 2's std = c_d range + c_0 to the observation residuals
-           h(x*_t, m*_j) - z_tk, with the robust grouped fit of ``calibrate.fit_noise``;
+           h(x*_t, m*_j) - z_tk, with the robust grouped fit of ``calibrate.fit_noise``
+           (its NumPy twin ``_host_fit_noise``: see Cost);
          * scale: residuals of a least-squares solution are smaller than the noise (each
            group's residual sum of squares has r_g = n_g - tr(J_g H^-1 J_g^T) degrees of
            freedom, not n_g). The smoother's variance components (Helmert/Forstner,
@@ -54,21 +55,29 @@ Uncertainty: a group's std estimated from r_g degrees of freedom has a relative 
 error of about 1 / sqrt(2 r_g) (chi-square); ``CalibrationInfo.relative_std`` reports it with
 r_g taken as the group's sample count (an upper bound on r_g, so the interval is a lower bound).
 
+Cost: one filter run per iteration, plus the smoother (0.15-0.35 of a run per iteration on
+MRCLAM robot 1 and on the simulated loop of ``benchmarks/calibration.py``), plus a few per cent
+for the rest. Between the filter runs everything runs on the host in NumPy/SciPy: the history
+of the best particle (``_best_history``), the residual geometry and the noise fits are NumPy
+twins of ``lineage.trace_lineage``, ``geometry``/``motion`` and ``calibrate.fit_noise``
+(tested against them). The JAX versions compiled anew in every iteration, because the number
+of associated observations changes with the association: 2-4 s a compile, which made a
+calibration cost 32 filter runs on a 250-step log instead of 3.
+
 Shapes: T steps, K observations per step, S associated observations, L smoothed landmarks.
 """
 from __future__ import annotations
 
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.optimize
 
 from jaxslam import calibrate, lineage, smoothing
 from jaxslam.datasets.log_format import wrap_angle_np
-from jaxslam.filter import estimate, run_filter
-from jaxslam.geometry import range_bearing
-from jaxslam.motion import control_to_odometry, odometry_from_poses, odometry_std
+from jaxslam.filter import run_filter
+from jaxslam.motion import control_to_odometry
 from jaxslam.types import FilterConfig, Observations, Params, default_params
 
 CHI2_2DOF_999 = 13.8155  # chi-square quantile, 2 degrees of freedom, 99.9 %
@@ -148,7 +157,7 @@ def starting_params(config: FilterConfig | None = None, dtype=jnp.float32, **ove
 
 def _typical_stds(params: Params, odometry, z_range) -> np.ndarray:
     """(4,) mean std over the log of heading, translation, range, bearing (``CalibrationInfo``)."""
-    move_std = np.asarray(odometry_std(jnp.asarray(odometry), params), np.float64)
+    move_std = _odometry_std(odometry, params)
     heading = np.sqrt(np.mean(move_std[:, 0] ** 2 + move_std[:, 2] ** 2))
     translation = np.sqrt(np.mean(move_std[:, 1] ** 2))
     obs_std = smoothing._observation_std(np.asarray(z_range, np.float64), params)
@@ -158,17 +167,13 @@ def _typical_stds(params: Params, odometry, z_range) -> np.ndarray:
 def _residuals(start_pose, smoothed: smoothing.Smoothed, filter_path, odometry, z,
                min_translation: float) -> _Residuals:
     poses = np.concatenate([np.asarray(start_pose, np.float64)[None], smoothed.path])
-    true_moves = np.asarray(odometry_from_poses(jnp.asarray(poses[:-1]),
-                                                jnp.asarray(poses[1:]), min_translation),
-                            np.float64)
+    true_moves = _odometry_from_poses(poses[:-1], poses[1:], min_translation)
     ids = np.asarray(smoothed.landmark_of_obs)
     step, row = np.nonzero(ids >= 0)
     landmark = ids[step, row]
     point = smoothed.landmark[landmark]
-    predicted = np.asarray(range_bearing(jnp.asarray(smoothed.path[step]), jnp.asarray(point)),
-                           np.float64)
-    at_filter = np.asarray(range_bearing(jnp.asarray(filter_path[step]), jnp.asarray(point)),
-                           np.float64)
+    predicted = _range_bearing(smoothed.path[step], point)
+    at_filter = _range_bearing(np.asarray(filter_path, np.float64)[step], point)
     sightings = np.bincount(landmark, minlength=len(smoothed.landmark))
     return _Residuals(true_moves, np.asarray(odometry, np.float64), predicted,
                       np.asarray(z, np.float64)[step, row], at_filter, step, landmark,
@@ -205,14 +210,11 @@ def _motion_update(res: _Residuals, params: Params, scales: smoothing.NoiseScale
     moving = np.all(np.isfinite(res.true_moves), axis=1)
     if int(moving.sum()) < MIN_MOVES:
         return None
-    fit = calibrate.fit_motion_noise(res.true_moves, res.measured_moves, moving,
-                                     trans_bins=4, rot_bins=4, min_count=5)
-    current = np.asarray(odometry_std(jnp.asarray(res.measured_moves), params), np.float64)
-    _, features = calibrate.motion_samples(jnp.asarray(res.measured_moves),
-                                           jnp.asarray(res.measured_moves))
-    features = np.asarray(features, np.float64)[:, moving]
-    current = current[moving]
-    coefficients = [np.asarray(f.coefficients, np.float64) for f in fit]
+    coefficients = list(_host_motion_fit(res.true_moves, res.measured_moves, moving,
+                                         trans_bins=4, rot_bins=4, min_count=5))
+    current = _odometry_std(res.measured_moves, params)[moving]
+    _, features = _motion_samples(res.measured_moves, res.measured_moves)
+    features = features[:, moving]
     # The heading group holds rot1 and rot2 together (its whitened row is their sum), so both
     # rows take one factor: the one that brings their summed variance to the estimate.
     heading_target = scales.heading**2 * np.mean(current[:, 0] ** 2 + current[:, 2] ** 2)
@@ -224,9 +226,7 @@ def _motion_update(res: _Residuals, params: Params, scales: smoothing.NoiseScale
         return None
     factor = np.sqrt(heading_target / heading_fit)
     rows = [coefficients[0] * factor, trans, coefficients[2] * factor]
-    errors, _ = calibrate.motion_samples(jnp.asarray(res.true_moves[moving]),
-                                         jnp.asarray(res.measured_moves[moving]))
-    errors = np.asarray(errors, np.float64)
+    errors, _ = _motion_samples(res.true_moves[moving], res.measured_moves[moving])
     std = [features[i] @ rows[i] for i in range(3)]
     heading_error, heading_std = errors[:, 0] + errors[:, 2], np.hypot(std[0], std[2])
     white = np.stack([heading_error / np.maximum(heading_std, STD_FLOOR),
@@ -288,15 +288,14 @@ def _observation_update(res: _Residuals, params: Params, scales: smoothing.Noise
     """New (range_noise, bearing_noise) (2, 2), or None when there are too few samples."""
     if int(used.sum()) < MIN_OBSERVATIONS:
         return None
-    fit = calibrate.fit_observation_noise(res.predicted_z, res.measured_z, used,
-                                          distance_bins=6, min_count=5)
+    fit = _host_observation_fit(res.predicted_z, res.measured_z, used, distance_bins=6,
+                                min_count=5)
     z_range = res.measured_z[used, 0]
     current = smoothing._observation_std(z_range, params)
     features = np.stack([z_range, np.ones_like(z_range)], 1)
     new = []
     for group, (component, scale) in enumerate(zip(fit, (scales.range, scales.bearing))):
-        row = _rescale(np.asarray(component.coefficients, np.float64), features,
-                       scale**2 * float(np.mean(current[:, group] ** 2)))
+        row = _rescale(component, features, scale**2 * float(np.mean(current[:, group] ** 2)))
         if row is None:
             return None
         error = res.predicted_z[used, group] - res.measured_z[used, group]
@@ -425,16 +424,186 @@ def _detections(path, points, z, valid, params: Params, max_range: float, half_f
         bearing = wrap_angle_np(np.arctan2(dy, dx) - pose[:, None, 2])
         in_view = ((distance >= float(params.min_range)) & (distance <= max_range)
                    & (np.abs(bearing) <= half_fov))
-        std = smoothing._observation_std(distance.reshape(-1), params).reshape(
-            distance.shape + (2,))
-        obs = z[begin:begin + chunk]  # (t, K, 2)
-        d_range = (obs[:, :, None, 0] - distance[:, None, :]) / std[:, None, :, 0]
-        d_bearing = wrap_angle_np(obs[:, :, None, 1] - bearing[:, None, :]) / std[:, None, :, 1]
-        close = (d_range**2 + d_bearing**2 <= 9.0) & valid[begin:begin + chunk, :, None]
-        detected = np.any(close, axis=1)  # (t, L)
-        ranges.append(distance[in_view])
-        hits.append(detected[in_view])
+        # Only the pairs in view are tested (a few per cent of (t, L) on a long log).
+        step, landmark = np.nonzero(in_view)
+        distance, bearing = distance[step, landmark], bearing[step, landmark]  # (n,)
+        std = smoothing._observation_std(distance, params)  # (n, 2)
+        obs = z[begin + step]  # (n, K, 2)
+        d_range = (obs[:, :, 0] - distance[:, None]) / std[:, None, 0]
+        d_bearing = wrap_angle_np(obs[:, :, 1] - bearing[:, None]) / std[:, None, 1]
+        close = (d_range**2 + d_bearing**2 <= 9.0) & valid[begin + step]
+        ranges.append(distance)
+        hits.append(np.any(close, axis=1))
     return np.concatenate(ranges), np.concatenate(hits)
+
+
+# --------------------------------------------------------------------------------------------
+# Host twins of the JAX code the EM loop used to call per iteration.
+#
+# Each EM iteration's fits see a few hundred to a few thousand samples, and their sample count
+# changes from iteration to iteration (the association changes): the jitted ``calibrate``
+# fits were recompiled every iteration (2-4 s each, several filter runs' worth on a short
+# log) to run for 5 ms. The twins below are the same procedure in NumPy/SciPy, float64;
+# ``tests/test_self_calibration.py`` checks them against ``calibrate`` and ``lineage``.
+
+
+def _quantile_bins(values, num_bins: int, valid):
+    """NumPy twin of ``calibrate.quantile_bins``."""
+    probabilities = np.linspace(0.0, 1.0, num_bins + 1)[1:-1]
+    edges = np.quantile(values[valid], probabilities)
+    return np.clip(np.searchsorted(edges, values, side="right"), 0, num_bins - 1)
+
+
+def _group_median(values, group, num_groups: int):
+    """(G,) median of ``values`` per group (0 for an empty group); group G drops a sample."""
+    out = np.zeros(num_groups)
+    for g in range(num_groups):
+        members = values[group == g]
+        if members.size:
+            out[g] = np.median(members)
+    return out
+
+
+def _nonnegative_fit(design, target, weight):
+    """argmin_{c >= 0} sum_g w_g (design_g . c - target_g)^2 (``calibrate.fit_nonnegative``,
+    solved exactly by ``scipy.optimize.nnls`` on columns scaled to unit weighted norm)."""
+    weight = weight / max(float(np.sum(weight)), 1e-300)
+    scale = np.sqrt(np.sum(weight[:, None] * design**2, axis=0))
+    scale = np.where(scale > 0.0, scale, 1.0)
+    root = np.sqrt(weight)[:, None]
+    solution, _ = scipy.optimize.nnls(root * design / scale, root[:, 0] * target)
+    return solution / scale
+
+
+def _robust_keep_host(score, usable, threshold: float, floor: float):
+    """NumPy twin of ``calibrate._robust_keep`` (the MAD rule with a floor)."""
+    if not usable.any():
+        return np.zeros_like(usable)
+    median = np.median(score[usable])
+    spread = calibrate._MAD_TO_STD * np.median(np.abs(score[usable] - median))
+    limit = np.inf if np.isinf(threshold) else threshold * spread
+    return usable & (np.abs(score - median) <= max(limit, floor))
+
+
+def _host_fit_noise(features, errors, group, valid, num_groups: int, *, min_count: int,
+                    sample_threshold: float = 5.0, group_threshold: float = 4.0,
+                    min_group_ratio: float = 2.0):
+    """(F,) coefficients of ``calibrate.fit_noise`` (zero-mean errors, steps 1-7 of that
+    module's docstring) on host arrays: features (S, F), errors (S,), group (S,), valid (S,)."""
+    features, errors = np.asarray(features, np.float64), np.asarray(errors, np.float64)
+    valid = np.asarray(valid, bool)
+    if not np.all(np.isfinite(features[valid])) or not np.all(np.isfinite(errors[valid])):
+        raise ValueError("the noise fit got non-finite valid samples")
+    if int(valid.sum()) < features.shape[1] * min_count:
+        raise ValueError(f"the noise fit got {int(valid.sum())} valid samples; expected at "
+                         f"least {features.shape[1] * min_count}")
+    group = np.where(valid, group, num_groups)
+    deviation = np.abs(errors)
+    robust_std = calibrate._MAD_TO_STD * _group_median(deviation, group, num_groups)
+    limit = (np.full(num_groups + 1, np.inf) if np.isinf(sample_threshold)
+             else sample_threshold * np.append(robust_std, 0.0))
+    kept_group = np.where(valid & (deviation <= limit[group]), group, num_groups)
+    count = np.bincount(kept_group, minlength=num_groups + 1)[:num_groups].astype(np.float64)
+    safe = np.maximum(count, 1.0)
+    std = np.sqrt(np.bincount(kept_group, errors**2, num_groups + 1)[:num_groups] / safe)
+    mean_features = np.stack([np.bincount(kept_group, column, num_groups + 1)[:num_groups]
+                              for column in features.T], 1) / safe[:, None]
+    used = count >= min_count
+    safe_std = np.where(std > 0.0, std, 1.0)
+    kept = used
+    for _ in range(calibrate._GROUP_ROUNDS):
+        coefficients = _nonnegative_fit(mean_features, std, np.where(kept, count, 0.0))
+        fitted = np.maximum(mean_features @ coefficients, calibrate._TINY)
+        new_kept = _robust_keep_host(np.log(safe_std) - np.log(fitted), used & (std > 0.0),
+                                     group_threshold, np.log(min_group_ratio))
+        kept = new_kept if new_kept.any() else used
+    return _nonnegative_fit(mean_features, std, np.where(kept, count, 0.0))
+
+
+def _motion_samples(true_moves, measured_moves):
+    """NumPy twin of ``calibrate.motion_samples``: errors (S, 3), features (3, S, 3)."""
+    errors = np.asarray(true_moves, np.float64) - measured_moves
+    errors[:, 0], errors[:, 2] = wrap_angle_np(errors[:, 0]), wrap_angle_np(errors[:, 2])
+    abs_rot1, abs_trans, abs_rot2 = np.abs(np.asarray(measured_moves, np.float64)).T
+    ones = np.ones_like(abs_trans)
+    features = np.stack([np.stack([abs_trans, abs_rot1, ones], -1),
+                         np.stack([abs_trans, abs_rot1 + abs_rot2, ones], -1),
+                         np.stack([abs_trans, abs_rot2, ones], -1)])
+    return errors, features
+
+
+def _host_motion_fit(true_moves, measured_moves, valid, *, trans_bins: int, rot_bins: int,
+                     min_count: int):
+    """(3, 3) coefficients of ``calibrate.fit_motion_noise`` (rows rot1, trans, rot2)."""
+    valid = np.asarray(valid, bool)
+    true_moves = np.where(valid[:, None], true_moves, 0.0)
+    errors, features = _motion_samples(true_moves, np.asarray(measured_moves, np.float64))
+    rows = []
+    for i in range(3):
+        group = (_quantile_bins(features[i][:, 0], trans_bins, valid) * rot_bins
+                 + _quantile_bins(features[i][:, 1], rot_bins, valid))
+        rows.append(_host_fit_noise(features[i], errors[:, i], group, valid,
+                                    trans_bins * rot_bins, min_count=min_count))
+    return np.stack(rows)
+
+
+def _host_observation_fit(true_z, measured_z, valid, *, distance_bins: int, min_count: int):
+    """(2, 2) coefficients of ``calibrate.fit_observation_noise`` (rows range, bearing)."""
+    valid = np.asarray(valid, bool)
+    true_z, measured_z = np.asarray(true_z, np.float64), np.asarray(measured_z, np.float64)
+    errors = np.stack([true_z[:, 0] - measured_z[:, 0],
+                       wrap_angle_np(true_z[:, 1] - measured_z[:, 1])], -1)
+    features = np.stack([measured_z[:, 0], np.ones_like(measured_z[:, 0])], -1)
+    group = _quantile_bins(measured_z[:, 0], distance_bins, valid)
+    return np.stack([_host_fit_noise(features, errors[:, i], group, valid, distance_bins,
+                                     min_count=min_count) for i in range(2)])
+
+
+def _odometry_std(odometry, params: Params):
+    """NumPy twin of ``motion.odometry_std``: Eq. (1) stds (N, 3) of (rot1, trans, rot2)."""
+    abs_rot1, abs_trans, abs_rot2 = np.abs(np.asarray(odometry, np.float64)).T
+    rot1, trans, rot2 = (np.asarray(c, np.float64) for c in (params.rot1_noise,
+                                                            params.trans_noise,
+                                                            params.rot2_noise))
+    return np.stack([rot1[0] * abs_trans + rot1[1] * abs_rot1 + rot1[2],
+                     trans[0] * abs_trans + trans[1] * (abs_rot1 + abs_rot2) + trans[2],
+                     rot2[0] * abs_trans + rot2[1] * abs_rot2 + rot2[2]], 1)
+
+
+def _odometry_from_poses(start, end, min_translation: float):
+    """NumPy twin of ``motion.odometry_from_poses`` (N, 3) -> (rot1, trans, rot2) (N, 3)."""
+    dx, dy = end[:, 0] - start[:, 0], end[:, 1] - start[:, 1]
+    c, s = np.cos(start[:, 2]), np.sin(start[:, 2])
+    along, across = c * dx + s * dy, -s * dx + c * dy
+    trans = np.hypot(along, across)
+    rot1 = np.where(trans >= min_translation, np.arctan2(across, along), 0.0)
+    rot2 = wrap_angle_np(wrap_angle_np(end[:, 2] - start[:, 2]) - rot1)
+    return np.stack([rot1, trans, rot2], 1)
+
+
+def _range_bearing(pose, point):
+    """NumPy twin of ``geometry.range_bearing`` for (N, 3) poses and (N, 2) points."""
+    dx, dy = point[:, 0] - pose[:, 0], point[:, 1] - pose[:, 1]
+    return np.stack([np.hypot(dx, dy), wrap_angle_np(np.arctan2(dy, dx) - pose[:, 2])], 1)
+
+
+def _best_history(lineage_record: lineage.Lineage, log_weight) -> lineage.LineagePath:
+    """NumPy twin of ``lineage.trace_lineage(lineage_record, estimate(final).best_particle)``.
+
+    The best particle is the first of the highest final log weight (``filter.estimate``).
+    """
+    ancestor = np.asarray(lineage_record.ancestor)
+    index = int(np.argmax(np.asarray(log_weight)))
+    after = np.empty(ancestor.shape[0], np.int64)
+    before = np.empty(ancestor.shape[0], np.int64)
+    for t in range(ancestor.shape[0] - 1, -1, -1):
+        after[t] = index
+        index = int(ancestor[t, index])
+        before[t] = index
+    steps = np.arange(ancestor.shape[0])
+    return lineage.LineagePath(pose=np.asarray(lineage_record.pose)[steps, after],
+                               match=np.asarray(lineage_record.match)[steps, before],
+                               birth_slot=np.asarray(lineage_record.birth_slot)[steps, before])
 
 
 def _with_values(params: Params, values: dict) -> Params:
@@ -513,8 +682,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                                   observations, jnp.asarray(start, dtype), record_lineage=True)
         objective.append(float(np.sum(np.asarray(trace.log_evidence))))
         evaluated.append(params)
-        history = jax.tree.map(np.asarray, lineage.trace_lineage(
-            trace.lineage, estimate(final).best_particle))
+        history = _best_history(trace.lineage, final.log_weight)
         ids, _ = lineage.landmark_identities(history.match, history.birth_slot)
         ids = np.where(valid, np.asarray(ids), -1)
         single_share = _single_share(ids)

@@ -121,15 +121,20 @@ def _group_fn(config: StudyConfig):
     """jit(vmap over a group of (run, condition) pairs) of ``_run_metrics``.
 
     Arguments: keys, params (leaves with the pair axis first), controls, observations,
-    tree_seen (pair axis first), then truth_pose, tree_centres, tree_radii (shared by every
-    run of a study).
+    tree_seen (pair axis first), then truth_pose, tree_centres, tree_radii (one world shared
+    by every run, or with the pair axis first when ``scenario.world = "per_run"``).
     """
 
     def per_pair(key, params, controls, observations, seen, truth_pose, centres, radii):
         world = RunBatch(None, None, truth_pose, centres, radii, seen)
         return _run_metrics(config, key, params, controls, observations, world)
 
-    return jax.jit(jax.vmap(per_pair, in_axes=(0, 0, 0, 0, 0, None, None, None)))
+    world_axis = 0 if _per_run_world(config) else None
+    return jax.jit(jax.vmap(per_pair, in_axes=(0, 0, 0, 0, 0) + (world_axis,) * 3))
+
+
+def _per_run_world(config: StudyConfig) -> bool:
+    return config.scenario.world == "per_run"
 
 
 # --------------------------------------------------------------------------------------------
@@ -306,8 +311,8 @@ class _ChunkRunner:
         per_run = jax.device_get((keys, scenario.controls, scenario.observations,
                                   scenario.tree_seen))
         params_by_condition = jax.device_get(self.params)
-        shared = jax.device_get((scenario.truth_pose, scenario.tree_centres,
-                                 scenario.tree_radii))
+        world = jax.device_get((scenario.truth_pose, scenario.tree_centres,
+                                scenario.tree_radii))
         # Pairs in (condition, run) order, padded to whole groups with the last pair.
         num_pairs = num_conditions * num_runs
         padded = -(-num_pairs // self.width) * self.width
@@ -319,7 +324,9 @@ class _ChunkRunner:
             per_pair = jax.tree.map(lambda x: x[runs], per_run)
             params = jax.tree.map(lambda x: x[conditions], params_by_condition)
             device = self.devices[index % len(self.devices)]
-            args = jax.device_put((*per_pair[:1], params, *per_pair[1:], *shared), device)
+            pair_world = (jax.tree.map(lambda x: x[runs], world) if _per_run_world(config)
+                          else world)
+            args = jax.device_put((*per_pair[:1], params, *per_pair[1:], *pair_world), device)
             groups_args.append((device, args))
         self._compile(groups_args)
         tick = time.perf_counter()
@@ -412,13 +419,20 @@ def _save_npz(path: pathlib.Path, **arrays) -> None:
         np.savez(handle, **arrays)
 
 
+def run_world_of(scenario: RunBatch, index: int) -> tuple:
+    """(truth_pose (T+1, 3), tree_centres (N, 2), tree_radii (N,)) of run ``index`` of a
+    chunk's RunBatch: the shared world, or that run's own (leaves (R, ...))."""
+    arrays = [np.asarray(x) for x in (scenario.truth_pose, scenario.tree_centres,
+                                      scenario.tree_radii)]
+    return tuple(a[index] for a in arrays) if arrays[0].ndim == 3 else tuple(arrays)
+
+
 def _write_example(out_dir: pathlib.Path, scenario, example) -> pathlib.Path:
     first = {name: np.asarray(value)[0, 0] for name, value in example.items()}
+    truth_pose, centres, radii = run_world_of(scenario, 0)
     path = out_dir / "example_run.npz"
     study_store.atomic_write(path, lambda p: _save_npz(
-        p, truth_pose=np.asarray(scenario.truth_pose),
-        tree_centres=np.asarray(scenario.tree_centres),
-        tree_radii=np.asarray(scenario.tree_radii),
+        p, truth_pose=truth_pose, tree_centres=centres, tree_radii=radii,
         tree_seen=np.asarray(scenario.tree_seen[0]), **first))
     return path
 
@@ -489,7 +503,8 @@ def _setting_label(condition: dict) -> str:
 
 
 def summarize_study(out_dir, table=None) -> str:
-    """Write ``summary.md`` (a Markdown table with units) and return it."""
+    """Write ``summary.md`` (a Markdown table with units) and the same rows as
+    ``summary.json`` (for scripts), and return the Markdown."""
     out_dir = pathlib.Path(out_dir)
     with open(out_dir / "study.toml", "rb") as handle:
         config = study_config_from_dict(tomllib.load(handle))
@@ -512,4 +527,6 @@ def summarize_study(out_dir, table=None) -> str:
               "means overconfident. Every metric is defined in docs/metrics.md."]
     text = "\n".join(lines) + "\n"
     study_store.atomic_write(out_dir / "summary.md", lambda p: p.write_text(text))
+    rows = json.dumps({"study": config.name, "rows": summary_rows(config, table)}, indent=1)
+    study_store.atomic_write(out_dir / "summary.json", lambda p: p.write_text(rows + "\n"))
     return text

@@ -42,6 +42,7 @@ _SCENARIO_RULES = {
     "observation_source": ("str", None, None),
     "detection": ("str", None, None),
     "odometry_noise_scale": ("float", 0.0, True),
+    "world": ("str", None, None),
 }
 _MAX_SEED = 2**32  # fold_in(PRNGKey(seed), run) keys: an unsigned 32-bit seed
 
@@ -135,7 +136,8 @@ def _check_param_value(where: str, key: str, value, base: dict) -> None:
 
 _SCENARIO_CHOICES = {"forest": ("random", "plantation"), "path": ("loop", "lawnmower", "random"),
                      "observation_source": ("analytic", "lidar"),
-                     "detection": ("centroid", "kasa", "geometric", "ransac")}
+                     "detection": ("centroid", "kasa", "geometric", "ransac"),
+                     "world": ("shared", "per_run")}
 
 
 def _check_scenario(section: dict) -> None:
@@ -154,6 +156,10 @@ class ScenarioConfig:
     observation_source: "analytic" (range-bearing to trunk centres with Table 2 noise) or
     "lidar" (MJX scans + trunk detection); detection: centroid | kasa | geometric | ransac;
     odometry_noise_scale: multiplies the Table 1 noise of the simulated odometry.
+    world: "shared" (every run follows one path through one forest, drawn from the seed:
+    runs differ in noise only, for paired comparisons) or "per_run" (run i draws its own
+    forest and path from its run key: the spread over worlds is part of every metric;
+    analytic observations only).
     """
 
     forest: str = "random"
@@ -166,10 +172,15 @@ class ScenarioConfig:
     observation_source: str = "analytic"
     detection: str = "kasa"
     odometry_noise_scale: float = 1.0
+    world: str = "shared"
 
     def __post_init__(self):
         _check_fields("scenario", self, _SCENARIO_RULES)
         _check_scenario(dataclasses.asdict(self))
+        if self.world == "per_run" and self.observation_source != "analytic":
+            raise ValueError("scenario.world='per_run' needs scenario.observation_source="
+                             "'analytic' (lidar scans are cast in one MJX model of a shared "
+                             "forest); use world='shared' for lidar studies")
 
 
 @dataclasses.dataclass(frozen=True)

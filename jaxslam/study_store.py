@@ -12,7 +12,7 @@ Layout of ``out_dir``::
                     ``pyarrow.dataset.dataset(out_dir / "runs")`` read the whole study
   traces/traces-AAAAAA-BBBBBB.npz     per-step position error (rows, T), run_id, condition
   damaged/          chunk files that failed verification, moved aside (never deleted)
-  example_run.npz, summary.md, *.png  written by the runner and the plots
+  example_run.npz, summary.md, summary.json, *.png  written by the runner and the plots
   *.tum, run-I-condition-C/           written by ``jaxslam export``
 
 Integrity: a chunk counts as done only when its Parquet file and its traces file are both
@@ -48,8 +48,8 @@ TRACES_DIR = "traces"
 DAMAGED_DIR = "damaged"
 MANIFEST = "manifest.json"
 LOCK = "study.lock"
-KNOWN_FILES = {"study.toml", "provenance.toml", "summary.md", "example_run.npz", MANIFEST,
-               LOCK, "metrics.json"}
+KNOWN_FILES = {"study.toml", "provenance.toml", "summary.md", "summary.json",
+               "example_run.npz", MANIFEST, LOCK, "metrics.json"}
 KNOWN_DIRS = {RUNS_DIR, TRACES_DIR, DAMAGED_DIR}
 # May change between invocations of one study: the results do not depend on them.
 RESUMABLE_KEYS = ("num_runs", "chunk_size")

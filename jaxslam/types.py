@@ -16,7 +16,7 @@ Dimension glossary (used in every docstring of the package):
 Conventions: poses are ``(x, y, theta)`` in metres and radians, theta wrapped to [-pi, pi);
 observations are ``(range, bearing)`` in the robot frame; landmark covariances are stored as
 their three distinct components ``(sxx, sxy, syy)`` in a trailing axis of size 3 so that the hot
-code can do closed-form 2x2 arithmetic (DESIGN.md performance rules); ``estimate`` expands them.
+code can do closed-form 2x2 arithmetic; ``estimate`` expands them.
 """
 from __future__ import annotations
 
@@ -63,7 +63,7 @@ class FilterConfig:
       proposal: one of ``PROPOSALS``.
       mixture_mode: ``fixed`` ratio phi or ``adaptive`` (only used by the mixture proposal).
       resampling: one of ``RESAMPLINGS``.
-      boundary: ``hard`` visibility limit or ``loose`` airlock (seed 000 section 3.1).
+      boundary: ``hard`` visibility limit or ``loose`` airlock (Geiser et al. 2023, section 3.1).
       association_window: 0 (default) matches observations against every slot; N > 0 only
         against each particle's N nearest active landmarks (by predicted range). Landmarks
         outside the window are neither matched nor penalised, so choose N above the number of
@@ -144,8 +144,11 @@ class Params(NamedTuple):
     """Dynamic filter parameters: a pytree of float arrays (scalars unless noted).
 
     A sweep over any field is a ``vmap`` over a stacked ``Params`` and compiles once.
+    docs/parameters.md lists every field with its unit, default, the ``FilterConfig`` choices
+    that read it, the equation it enters and how to estimate it without ground truth.
 
-    Motion noise, seed 000 Eq. (1): each std is ``c_trans*|trans| + c_rot*|rot| + c_const``.
+    Motion noise, Geiser et al. 2023, Eq. (1): each std is
+    ``c_trans*|trans| + c_rot*|rot| + c_const``.
       rot1_noise: (3,) coefficients (trans, rot, const) of the first rotation's std
         [rad/m, rad/rad, rad]. Table 1 row 1.
       trans_noise: (3,) coefficients of the translation std [m/m, m/rad, m]; its rotation term
@@ -160,7 +163,7 @@ class Params(NamedTuple):
       (rot1, trans, rot2) move and reuse these coefficients (see ``motion.py``).
       wheelbase / encoder_offset / laser_forward / laser_left: Ackermann vehicle geometry [m]
         (Victoria Park defaults L=2.83, H=0.76, a=3.78, b=0.50); the pose is the laser's.
-    Observation noise, seed 000 Table 2: std = c_dist * range + c_const.
+    Observation noise, Geiser et al. 2023, Table 2: std = c_dist * range + c_const.
       range_noise: (2,) (per metre of distance, constant) [m/m, m].
       bearing_noise: (2,) (per metre of distance, constant) [rad/m, rad].
       range_std_floor / bearing_std_floor: lower bounds on the two stds. Table 2's constants
@@ -197,12 +200,14 @@ class Params(NamedTuple):
       existence_init / existence_delete: log-odds at birth and the deletion threshold.
       existence_max: log-odds are clipped to [-existence_max, existence_max] so a long-seen
         landmark can still be deleted after a few misses.
-      airlock_sigmas: the airlock width in standard deviations of the range; defaults to
-        sqrt(association_gate) (seed 000 section 3.1: "based on the correspondence
-        threshold").
+      airlock_sigmas: the airlock width in standard deviations of the range (``boundary=
+        "loose"``): w = airlock_sigmas * sigma_range. ``default_params`` derives it from the
+        gate of the same call, sqrt(association_gate) (Geiser et al. 2023, section 3.1: "based
+        on the correspondence threshold"): 5 for the default gate 25, 4 for a gate of 16; a
+        value given explicitly wins.
     Resampling:
       ess_threshold: resample when ESS < ess_threshold * P.
-    Mixture proposal (seed 000 section 5.2):
+    Mixture proposal (Geiser et al. 2023, section 5.2):
       mixture_ratio: phi, the probability of drawing a particle from the observation proposal.
       mixture_min / mixture_max: bounds of the adaptive phi.
       likelihood_rate_fast / likelihood_rate_slow: smoothing rates of the short- and long-term
@@ -245,18 +250,49 @@ class Params(NamedTuple):
 
 
 def default_params(config: FilterConfig | None = None, dtype=jnp.float32, **overrides) -> Params:
-    """Seed 000 Tables 1 and 2 and sensible defaults for a 20 m forestry lidar.
+    """Geiser et al. 2023, Tables 1 and 2 and sensible defaults for a 20 m forestry lidar.
+
+    Every field's default, unit and meaning: docs/parameters.md. Overrides are applied first;
+    a derived default is then computed from the values of the SAME call, so overriding what
+    it derives from carries over (an explicitly given derived field wins):
+
+      airlock_sigmas = sqrt(association_gate)   (Geiser et al. 2023, section 3.1)
+
+    The loose boundary's airlock is a ring inside R = max_range, w = airlock_sigmas * std
+    wide (``landmarks.py``): an observation's own range std sigma_range(z_k), a landmark's
+    predicted range std sqrt(S_rr). With airlock_sigmas = sqrt(gate), a landmark matched
+    inside R - w_m is beyond the gate of every observation beyond R, since the squared
+    Mahalanobis distance is at least its range part, d2 >= (z_r - r_m)^2 / S_rr > gate
+    (and likewise for an observation inside R - w_k and an exactly known landmark beyond R).
+    The square root is taken in ``dtype``, of the gate as stored: the default gate 25 gives
+    exactly 5.0 (the value frozen before), ``association_gate=16.0`` gives 4.0, and
+    ``p.airlock_sigmas == sqrt(p.association_gate)`` holds bit for bit. Every other default
+    is a constant.
 
     Args:
-      config: the filter config (unused today; kept so defaults may depend on it).
+      config: the ``FilterConfig`` the Params are meant for, or None. No default depends on
+        it today, on purpose: ``Params`` hold numbers, ``FilterConfig`` code paths and shapes,
+        and a field a config does not use (``wheelbase`` without ``motion_model=
+        "ackermann"``, ``mixture_*`` without ``proposal="mixture"``, the airlock with
+        ``boundary="hard"``) is simply not read by the compiled step, so one set of defaults
+        serves every config and a sweep's stacked Params are the same whatever the config.
+        It is accepted so that the signature stays stable: every entry point (studies, the
+        CLI, ``pipeline.load_params``, ``calibrate_params``, ``victoria_park_params``)
+        already passes its config, and a default that comes to depend on one needs no change
+        in any caller. It must be a ``FilterConfig`` or None: a number given in its place
+        (``default_params(15.0)`` for ``max_range=15.0``) is refused rather than ignored.
       dtype: float dtype of every leaf.
       **overrides: any ``Params`` field, e.g. ``max_range=30.0``.
     Raises:
+      TypeError: ``config`` is neither a ``FilterConfig`` nor None.
       ValueError: an unknown field, or a value ``validation.check_params`` refuses (wrong
         shape, e.g. a scalar for a 3-vector noise field, NaN, out of range), naming it.
     """
-    del config
-    gate = 25.0
+    if config is not None and not isinstance(config, FilterConfig):
+        raise TypeError(
+            f"default_params(config={config!r}): config must be a FilterConfig or None; "
+            "give Params fields by name, e.g. default_params(config, max_range=15.0)"
+        )
     values = dict(
         rot1_noise=(0.0, 0.06, 0.0002),
         trans_noise=(0.02, 0.006, 0.00003),
@@ -277,14 +313,14 @@ def default_params(config: FilterConfig | None = None, dtype=jnp.float32, **over
         min_range=0.1,
         miss_range=float("inf"),
         miss_bearing=float(np.pi),
-        association_gate=gate,
+        association_gate=25.0,
         new_landmark_log_offset=0.0,
         detection_probability=0.9,
         false_alarm_probability=0.05,
         existence_init=1.0,
         existence_delete=-1.5,
         existence_max=6.0,
-        airlock_sigmas=float(np.sqrt(gate)),
+        airlock_sigmas=None,  # derived below: sqrt(association_gate)
         ess_threshold=0.5,
         mixture_ratio=0.3,
         mixture_min=0.05,
@@ -299,7 +335,15 @@ def default_params(config: FilterConfig | None = None, dtype=jnp.float32, **over
             f"expected fields of Params: {sorted(values)}"
         )
     values.update(overrides)
-    params = Params(**{k: jnp.asarray(v, dtype=dtype) for k, v in values.items()})
+    derived = {"airlock_sigmas": ("association_gate", jnp.sqrt)}
+    leaves = {k: jnp.asarray(v, dtype=dtype) for k, v in values.items() if k not in derived
+              or k in overrides}
+    for name, (source, rule) in derived.items():
+        if name not in overrides:
+            # A tracer gate (default_params inside vmap) gives a traced airlock. An invalid
+            # gate (NaN, negative) gives a NaN here, but check_params names the gate first.
+            leaves[name] = rule(leaves[source])
+    params = Params(**{k: leaves[k] for k in Params._fields})
     from jaxslam.validation import check_params  # lazy: validation imports this module
     check_params(params, where="default_params", allow_batch=False)
     return params

@@ -1,8 +1,11 @@
 """Batches of simulated runs for Monte Carlo studies (``jaxslam.studies`` calls this lazily,
 so the library itself never imports MuJoCo).
 
-Every run of a study follows the same true path through the same forest; runs differ in
-odometry and observation noise, run i drawing from ``fold_in(PRNGKey(seed), i)``.
+Run i draws from its key ``fold_in(PRNGKey(seed), i)``: its odometry and observation noise
+from ``fold_in(key, 0)`` (the filter uses ``fold_in(key, 1)``) and, with
+``scenario.world = "per_run"``, its own forest and path from ``fold_in(key, 2)``. With
+``world = "shared"`` every run follows one true path through one forest (drawn from the seed
+alone), so runs differ only in noise: paired comparisons, but one world's luck.
 """
 from __future__ import annotations
 
@@ -31,11 +34,23 @@ def simulation_params(scenario: ScenarioConfig) -> Params:
 
 @functools.lru_cache(maxsize=8)
 def study_world(scenario: ScenarioConfig, seed: int):
-    """The forest and true path of a study (built once, eagerly). Returns (forest, path)."""
+    """The forest and true path of a shared-world study (built once, eagerly): (forest, path)."""
+    return _draw_world(scenario, jax.random.fold_in(jax.random.PRNGKey(seed), 2**30))
+
+
+def run_world(scenario: ScenarioConfig, seed: int, run_id: int):
+    """The forest and true path of run ``run_id`` of a per-run-world study: (forest, path),
+    drawn from ``fold_in(fold_in(PRNGKey(seed), run_id), 2)``."""
+    run_key = jax.random.fold_in(jax.random.PRNGKey(seed), run_id)
+    return _draw_world(scenario, jax.random.fold_in(run_key, 2))
+
+
+def _draw_world(scenario: ScenarioConfig, key):
+    """A forest (random or plantation) and a true path (loop, lawnmower or random) (T+1, 3)."""
     from sims import forest as forest_lib
     from sims import paths
 
-    key_forest, key_path = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(seed), 2**30))
+    key_forest, key_path = jax.random.split(key)
     size = scenario.size
     centre = (0.5 * size, 0.5 * size)
     path = None
@@ -60,19 +75,29 @@ def study_world(scenario: ScenarioConfig, seed: int):
     return forest, path
 
 
+def _world_arrays(forest, path):
+    """(path (T+1, 3), centres (N, 2), radii (N,)) as float32 arrays."""
+    return (jnp.asarray(path, jnp.float32), jnp.asarray(forest.centres, jnp.float32),
+            jnp.asarray(forest.radii, jnp.float32))
+
+
 def scenario_batch(config: StudyConfig, run_ids: np.ndarray, width: int | None = None
                    ) -> RunBatch:
     """Simulate the runs ``run_ids``: run i draws its noise from fold_in(PRNGKey(seed), i).
 
     The runs go through one compiled simulator of ``width`` runs (default
     ``config.run_width``) in groups, the last padded by repeating its last id, so a run's
-    inputs never depend on how many runs are asked for at once. Leaves (len(run_ids), ...).
+    inputs never depend on how many runs are asked for at once. Leaves (R, ...) for the
+    controls, observations and tree_seen; truth_pose (T+1, 3), tree_centres (N, 2) and
+    tree_radii (N,) are the shared world's, or (R, ...) with ``scenario.world = "per_run"``.
     """
-    simulate, world = _simulator(config.scenario, config.seed, config.filter.max_obs)
     run_ids = np.asarray(run_ids, np.int64).reshape(-1)
     if run_ids.size == 0:
         raise ValueError("scenario_batch needs at least one run id")
     width = config.run_width if width is None else int(width)
+    if config.scenario.world == "per_run":
+        return _per_run_batch(config, run_ids, width)
+    simulate, world = _simulator(config.scenario, config.seed, config.filter.max_obs)
     padded = -(-run_ids.size // width) * width
     ids = np.concatenate([run_ids, np.full(padded - run_ids.size, run_ids[-1])])
     groups = [simulate(jnp.asarray(ids[first:first + width], jnp.uint32))
@@ -137,12 +162,57 @@ def _simulator(settings: ScenarioConfig, seed: int, max_obs: int):
             # RANSAC fits): a vmap over all T steps of a 100-run chunk asked for 63 GB. Steps
             # go in sequence, runs stay vmapped.
             observations = jax.lax.map(lambda args: observe(*args), inputs)
-        if settings.observation_source == "analytic":
-            ids = jnp.where(observations.valid, observations.landmark_id, centres.shape[0])
-            seen = jnp.zeros(centres.shape[0], bool).at[ids.ravel()].set(True, mode="drop")
-        else:
-            seen = in_range
+        seen = (_observed_trees(observations, centres.shape[0])
+                if settings.observation_source == "analytic" else in_range)
         return controls, observations, seen
 
     world = RunBatch(None, None, path, centres, radii, in_range)
     return jax.jit(jax.vmap(one_run)), world
+
+
+def _observed_trees(observations, num_trees: int):
+    """(N,) bool: trees observed at least once (analytic observations carry tree ids)."""
+    ids = jnp.where(observations.valid, observations.landmark_id, num_trees)
+    return jnp.zeros(num_trees, bool).at[ids.ravel()].set(True, mode="drop")
+
+
+@functools.lru_cache(maxsize=8)
+def _per_run_simulator(settings: ScenarioConfig, seed: int, max_obs: int):
+    """jit(vmap(one run)) for per-run worlds: (run_ids (R,), path (R, T+1, 3), centres (R, N, 2),
+    radii (R, N)) -> (controls (R, T, 3), observations, tree_seen (R, N)). Analytic observations
+    (a lidar needs an MJX model of each run's forest, not built per run)."""
+    from sims import scenario as scenario_lib
+    from sims.paths import noisy_odometry, true_moves
+
+    params = simulation_params(settings)
+
+    def one_run(run_id, path, centres, radii):
+        moves = true_moves(path, params.min_translation)
+        run_key = jax.random.fold_in(jax.random.PRNGKey(seed), run_id)
+        key_odometry, key_obs = jax.random.split(jax.random.fold_in(run_key, 0))
+        controls = noisy_odometry(key_odometry, moves, params)
+        observations = jax.vmap(lambda key, pose: scenario_lib.analytic_observations(
+            key, pose, centres, radii, params, max_obs))(
+                jax.random.split(key_obs, moves.shape[0]), path[1:])
+        return controls, observations, _observed_trees(observations, centres.shape[0])
+
+    return jax.jit(jax.vmap(one_run))
+
+
+def _per_run_batch(config: StudyConfig, run_ids: np.ndarray, width: int) -> RunBatch:
+    """``scenario_batch`` for ``world = "per_run"``: run i's forest and path from its own key
+    (``run_world``, drawn on the host), simulated in groups of ``width`` runs."""
+    settings = config.scenario
+    simulate = _per_run_simulator(settings, config.seed, config.filter.max_obs)
+    worlds = [_world_arrays(*run_world(settings, config.seed, int(i))) for i in run_ids]
+    path, centres, radii = (jnp.stack(parts) for parts in zip(*worlds))
+    padded = -(-run_ids.size // width) * width
+    rows = np.minimum(np.arange(padded), run_ids.size - 1)
+    groups = []
+    for first in range(0, padded, width):
+        group = rows[first:first + width]
+        groups.append(simulate(jnp.asarray(run_ids[group], jnp.uint32), path[group],
+                               centres[group], radii[group]))
+    controls, observations, seen = jax.tree.map(
+        lambda *parts: jnp.concatenate(parts)[:run_ids.size], *groups)
+    return RunBatch(controls, observations, path, centres, radii, seen)

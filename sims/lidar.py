@@ -25,7 +25,7 @@ from jaxslam.geometry import wrap_angle
 from sims.forest import World
 from sims.mujoco_loader import mjx, mujoco  # imported when first used
 
-# Seed 000 Table 2: range std = 0.005 * distance + 0.0 [m].
+# Geiser et al. 2023, Table 2: range std = 0.005 * distance + 0.0 [m].
 TABLE2_RANGE_NOISE = (0.005, 0.0)
 _PLANE = int(mujoco.mjtGeom.mjGEOM_PLANE)
 _FAR = -1000.0  # parking height of unused slots: no beam reaches it
@@ -153,7 +153,7 @@ def cast_rays(world: World, pose, directions, sector, sector_centre, sector_half
 
 
 def add_range_noise(key, ranges, max_range, coefficients=TABLE2_RANGE_NOISE, floor=0.0):
-    """Range noise per seed 000 Table 2: r' = r + (c_dist r + c_const) eps, eps ~ N(0, 1),
+    """Range noise per Geiser et al. 2023, Table 2: r' = r + (c_dist r + c_const) eps, eps ~ N(0, 1),
     std floored at ``floor``; no-returns stay max_range and returns stay in [0, max_range)."""
     std = jnp.maximum(coefficients[0] * ranges + coefficients[1], floor)
     noisy = ranges + std * jax.random.normal(key, ranges.shape, ranges.dtype)

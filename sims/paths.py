@@ -1,8 +1,8 @@
-"""Robot paths through a forest, their true moves and noisy odometry (seed 000 Eq. 1).
+"""Robot paths through a forest, their true moves and noisy odometry (Geiser et al. 2023, Eq. 1).
 
 A path is ``poses`` (T+1, 3): the initial pose first, then one pose per step, heading along
 the direction of travel. ``true_moves`` gives the (rot1, trans, rot2) move of each step and
-``noisy_odometry`` draws the odometry readings a robot would report, per seed 000 Eq. (1)
+``noisy_odometry`` draws the odometry readings a robot would report, per Geiser et al. 2023, Eq. (1)
 with Table 1 coefficients (``jaxslam.motion.sample_odometry``).
 """
 from __future__ import annotations
@@ -113,6 +113,6 @@ def true_moves(poses, min_translation: float = 0.01):
 
 
 def noisy_odometry(key, moves, params: Params):
-    """(T, 3) odometry readings: each true move (T, 3) perturbed per seed 000 Eq. (1)."""
+    """(T, 3) odometry readings: each true move (T, 3) perturbed per Geiser et al. 2023, Eq. (1)."""
     keys = jax.random.split(key, moves.shape[0])
     return jax.vmap(sample_odometry, in_axes=(0, 0, None))(keys, moves, params)

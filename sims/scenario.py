@@ -8,7 +8,7 @@ from ``poses[:, t]`` to ``poses[:, t + 1]`` and ``observations[:, t]`` is taken 
 
 Observation sources:
   analytic  exact range-bearing to every trunk centre with min_range < range <= max_range
-            (no occlusion), plus seed 000 Table 2 noise (std = c_dist * range + c_const for
+            (no occlusion), plus Geiser et al. 2023, Table 2 noise (std = c_dist * range + c_const for
             range and bearing, floored by ``params.range_std_floor`` etc. only when
             ``floor_noise=True``); the K nearest are kept, ``landmark_id`` = true tree index.
   lidar     an ``mjx.ray`` scan with per-beam range noise, then ``detect_trunks``;
@@ -62,7 +62,7 @@ def analytic_observations(key, pose, centres, radii, params: Params, max_obs: in
     """Noisy range-bearing (K, 2) of the K nearest trunks in range of ``pose`` (3,).
 
     z = h(pose, c_n) + (sigma_r eps_1, sigma_b eps_2), sigma = coeff[0] * range + coeff[1]
-    (seed 000 Table 2); trunks beyond ``params.max_range`` or nearer than ``min_range`` are
+    (Geiser et al. 2023, Table 2); trunks beyond ``params.max_range`` or nearer than ``min_range`` are
     not seen. With fewer than K in range the remaining rows are invalid.
     """
     truth = range_bearing(pose[None, :], centres)  # (N, 2)

@@ -1,5 +1,46 @@
-"""Test configuration: float64 available, silent broadcasting turned into errors."""
+"""Test configuration: float64 available, silent broadcasting turned into errors, and the
+persistent compilation cache kept out of the test process.
+
+Subprocess tests (the ``jaxslam`` command) share a cache of this session's own, never the
+user's. In this process a test that calls ``cli.main`` turns the persistent cache on
+(``cli.enable_compilation_cache``); it is turned off again after that test, because writing
+some of the later tests' executables to it aborted the process (jax 0.10.2 on the CPU,
+``compilation_cache.put_executable_and_time``, seen twice in full runs).
+"""
+import os
+import tempfile
+
 import jax
+import pytest
+
+os.environ.setdefault("JAXSLAM_CACHE_DIR", tempfile.mkdtemp(prefix="jaxslam-test-cache-"))
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+
+@pytest.fixture(autouse=True)
+def _persistent_cache_off_after_each_test():
+    yield
+    if jax.config.jax_compilation_cache_dir is not None:
+        from jax._src import compilation_cache
+
+        jax.config.update("jax_compilation_cache_dir", None)
+        compilation_cache.reset_cache()
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _free_compiled_programs_after_each_module():
+    """Drop every compiled program once a test module is done. Each XLA:CPU executable keeps
+    a few memory mappings; a whole default-tier run compiled enough to approach the kernel's
+    limit of 65,530 mappings (``vm.max_map_count``: measured about 3.7 per small program),
+    and the run then crashed inside the XLA compiler."""
+    yield
+    import gc
+    import sys
+
+    jax.clear_caches()
+    studies = sys.modules.get("jaxslam.studies")
+    if studies is not None:
+        studies._COMPILED.clear()
+    gc.collect()

@@ -14,7 +14,7 @@ Poses and angles
   pose = (x, y, theta); angles wrap to [-pi, pi) by a - 2 pi floor((a + pi) / (2 pi)).
   Every innovation bearing and every heading difference is wrapped.
 
-Motion (seed 000 Eq. 1, odometry rot1-trans-rot2)
+Motion (Geiser et al. 2023, Eq. 1, odometry rot1-trans-rot2)
   x_hat = g(x_prev, u): x + t cos(theta + r1), y + t sin(theta + r1), theta + r1 + r2, with
   u = the MEASURED (r1, t, r2).
   Noise stds std = (a1 |t| + b1 |r1| + c1, a2 |t| + b2 (|r1| + |r2|) + c2, a3 |t| + b3 |r2| + c3)
@@ -31,7 +31,7 @@ Motion (seed 000 Eq. 1, odometry rot1-trans-rot2)
   r2 = wrap(dtheta - r1)), Gaussian density in odometry space with the stds above, divided by
   |det J| = t, t clamped below by min_translation [jaxslam ``motion_log_density``].
 
-Measurement (range, bearing), seed 000 Table 2
+Measurement (range, bearing), Geiser et al. 2023, Table 2
   h(x, m) = (|m - t|, wrap(atan2(dy, dx) - theta)).
   Hx = dh/dx = [[-dx/r, -dy/r, 0], [dy/r^2, -dx/r^2, -1]], Hm = dh/dm = [[dx/r, dy/r],
   [-dy/r^2, dx/r^2]].

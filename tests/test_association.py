@@ -396,5 +396,10 @@ def test_match_rejects_unknown_kind():
         match("nearest", np.zeros((2, 2)), 1.0, None)
 
 
-def test_module_exports_stable_match():
-    assert association.stable_match is stable_match
+def test_top_level_exports_stable_match():
+    """``jaxslam.stable_match`` (the lazy top-level export) is the association kernel."""
+    import jaxslam
+
+    assert jaxslam.stable_match is association.stable_match
+    match, _ = jaxslam.stable_match(jnp.array([[1.0, 2.0], [0.5, 3.0]]), 10.0)
+    np.testing.assert_array_equal(match, [1, 0])  # row 1 takes slot 0 (0.5 < 1.0)

@@ -1,6 +1,6 @@
 """Noise-model estimation: the optax non-negative least squares against ``scipy.optimize.nnls``,
 per-group maximum likelihood against a NumPy float64 reference, the MAD outlier rules, recovery
-of seed 000 Tables 1 and 2 from synthetic data drawn from Eq. (1), and bad input."""
+of Geiser et al. 2023, Tables 1 and 2 from synthetic data drawn from Eq. (1), and bad input."""
 import chex
 import jax
 import jax.numpy as jnp
@@ -11,9 +11,9 @@ from scipy.optimize import nnls
 from jaxslam import calibrate
 from jaxslam.types import default_params
 
-# Seed 000 Table 1: rows (rot1, trans, rot2), columns (translation, rotation, constant).
+# Geiser et al. 2023, Table 1: rows (rot1, trans, rot2), columns (translation, rotation, constant).
 TABLE_1 = np.array([[0.0, 0.06, 0.0002], [0.02, 0.006, 0.00003], [0.0, 0.06, 0.0003]])
-# Seed 000 Table 2: rows (range, bearing), columns (distance, constant).
+# Geiser et al. 2023, Table 2: rows (range, bearing), columns (distance, constant).
 TABLE_2 = np.array([[0.005, 0.0], [0.0005, 0.0]])
 
 

@@ -1,5 +1,5 @@
 """Landmark life cycle: birth into the first free slots, full maps, existence evidence and
-clipping, visibility, and the loose-boundary airlock of seed 000 Fig. 3 through the public
+clipping, visibility, and the loose-boundary airlock of Geiser et al. 2023, Fig. 3 through the public
 filter step (one particle, zero-noise motion, crafted states)."""
 import jax
 import jax.numpy as jnp
@@ -174,7 +174,7 @@ def test_visibility_rejects_unknown_boundary():
 
 
 # ---------------------------------------------------------------------------------------------
-# The airlock through the public filter step (seed 000 Fig. 3)
+# The airlock through the public filter step (Geiser et al. 2023, Fig. 3)
 
 
 @pytest.fixture(scope="module")

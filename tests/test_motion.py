@@ -1,5 +1,5 @@
 """Motion models against plain NumPy float64 references: the rot1-trans-rot2 decomposition,
-seed 000 Eq. (1) with Table 1 numbers, sampling moments over many keys, the log-density, the
+Geiser et al. 2023, Eq. (1) with Table 1 numbers, sampling moments over many keys, the log-density, the
 velocity (arc) and Ackermann models against fine-step Euler integration of their kinematics
 (Victoria Park README), the stationary-robot degeneracy, jit and vmap."""
 import jax
@@ -10,7 +10,7 @@ import pytest
 from jaxslam import motion
 from jaxslam.types import default_params
 
-# Seed 000 Table 1: rows (rot1, trans, rot2), columns (translation, rotation, constant).
+# Geiser et al. 2023, Table 1: rows (rot1, trans, rot2), columns (translation, rotation, constant).
 TABLE_1 = np.array([[0.0, 0.06, 0.0002], [0.02, 0.006, 0.00003], [0.0, 0.06, 0.0003]])
 LOG_2PI = np.log(2 * np.pi)
 
@@ -32,7 +32,7 @@ def ref_odometry(pose_a, pose_b, min_translation):
 
 
 def ref_std(odometry, table=TABLE_1):
-    """Seed 000 Eq. (1): sigma = a |trans| + b |rot| + c; the translation's rot is |r1|+|r2|."""
+    """Geiser et al. 2023, Eq. (1): sigma = a |trans| + b |rot| + c; the translation's rot is |r1|+|r2|."""
     r1, t, r2 = np.abs(odometry)
     rots = (r1, r1 + r2, r2)
     return np.array([table[i, 0] * t + table[i, 1] * rots[i] + table[i, 2] for i in range(3)])
@@ -114,7 +114,7 @@ def test_apply_odometry_jit_vmap(rng):
 
 
 def test_stationary_robot_jitter_is_a_pure_turn(params, rng):
-    """Seed 000 degeneracy: a parked robot whose pose jitters by millimetres (and a few mrad)
+    """Geiser et al. 2023 degeneracy: a parked robot whose pose jitters by millimetres (and a few mrad)
     must give rot1 = 0 (not the angle of the jitter) and small finite stds."""
     base = np.array([3.0, -2.0, 0.7])
     jitter = np.stack([rng.uniform(-3e-3, 3e-3, 200), rng.uniform(-3e-3, 3e-3, 200),

@@ -8,7 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxslam import calibrate, lineage
 from jaxslam import self_calibration as sc
+from jaxslam.geometry import range_bearing
+from jaxslam.motion import odometry_from_poses, odometry_std
 from jaxslam.types import FilterConfig, default_params, make_observations
 from sims.forest import random_forest
 from sims.paths import loop_path
@@ -162,3 +165,124 @@ def test_exported_at_top_level():
 
     assert jaxslam.calibrate_params is sc.calibrate_params
     assert jaxslam.CalibrationInfo is sc.CalibrationInfo
+
+
+# ---------------------------------------------------------------------------------------------
+# Host twins of the JAX functions the EM loop used to call (compiled anew every iteration)
+
+
+def _noisy_moves(rng, count):
+    """Measured moves and true = measured + Eq. (1) noise (2 % of them 0.5 rad off)."""
+    measured = np.stack([rng.uniform(-0.3, 0.3, count), rng.uniform(0.1, 0.6, count),
+                         rng.uniform(-0.3, 0.3, count)], 1)
+    coefficients = np.array([[0.0, 0.06, 0.002], [0.02, 0.006, 0.003], [0.01, 0.06, 0.003]])
+    abs_rot1, trans, abs_rot2 = np.abs(measured).T
+    features = [(trans, abs_rot1), (trans, abs_rot1 + abs_rot2), (trans, abs_rot2)]
+    std = np.stack([c[0] * f[0] + c[1] * f[1] + c[2] for c, f in zip(coefficients, features)],
+                   1)
+    true = measured + std * rng.standard_normal((count, 3))
+    true[rng.random(count) < 0.02] += 0.5
+    return true, measured
+
+
+def test_host_motion_fit_matches_calibrate():
+    rng = np.random.default_rng(0)
+    true, measured = _noisy_moves(rng, 400)
+    valid = rng.random(400) < 0.9
+    true[~valid] = np.nan  # a move the smoother could not give: masked out in both
+    got = sc._host_motion_fit(true, measured, valid, trans_bins=4, rot_bins=4, min_count=5)
+    fit = calibrate.fit_motion_noise(true, measured, valid, trans_bins=4, rot_bins=4,
+                                     min_count=5)
+    want = np.stack([np.asarray(f.coefficients) for f in fit])
+    assert np.all(want[:, 2] > 0) and np.count_nonzero(want) >= 5  # a real fit, not zeros
+    # The same groups, outlier rules and weights; the exact NNLS against optax's projected
+    # gradient with its active-set polish, which lands on the same solution (test_calibrate).
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
+
+
+def test_host_observation_fit_matches_calibrate():
+    rng = np.random.default_rng(1)
+    count = 600
+    measured = np.stack([rng.uniform(0.5, 12.0, count), rng.uniform(-1.5, 1.5, count)], 1)
+    std = np.stack([0.01 * measured[:, 0] + 0.005, 0.001 * measured[:, 0] + 0.002], 1)
+    std[measured[:, 0] > 10.5] *= 6.0  # the farthest distance bin: a group outlier
+    true = measured + std * rng.standard_normal((count, 2))
+    true[rng.random(count) < 0.02, 0] += 2.0  # sample outliers
+    true[:, 1] = (true[:, 1] + np.pi) % (2 * np.pi) - np.pi
+    valid = rng.random(count) < 0.95
+    got = sc._host_observation_fit(true, measured, valid, distance_bins=6, min_count=5)
+    fit = calibrate.fit_observation_noise(true, measured, valid, distance_bins=6, min_count=5)
+    assert not np.all(np.asarray(fit.range.kept))  # the group rule did remove a group
+    want = np.stack([np.asarray(fit.range.coefficients), np.asarray(fit.bearing.coefficients)])
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-9)
+
+
+def test_best_history_matches_trace_lineage():
+    rng = np.random.default_rng(3)
+    steps, num, rows = 9, 6, 3
+    record = lineage.Lineage(
+        ancestor=jnp.asarray(rng.integers(0, num, (steps, num)), jnp.int32),
+        match=jnp.asarray(rng.integers(-1, 4, (steps, num, rows)), jnp.int16),
+        birth_slot=jnp.asarray(rng.integers(-1, 4, (steps, num, rows)), jnp.int16),
+        pose=jnp.asarray(rng.normal(size=(steps, num, 3))))
+    tied = np.zeros(num)
+    tied[[2, 4]] = 1.0  # two best particles: the first one (argmax), as ``estimate``
+    for log_weight in (rng.normal(size=num), tied):
+        want = lineage.trace_lineage(record, jnp.argmax(jnp.asarray(log_weight)))
+        got = sc._best_history(record, jnp.asarray(log_weight))
+        for name in want._fields:
+            np.testing.assert_array_equal(getattr(got, name), np.asarray(getattr(want, name)))
+
+
+def test_host_geometry_matches_jax():
+    rng = np.random.default_rng(2)
+    start = np.concatenate([rng.uniform(-30, 30, (40, 2)), rng.uniform(-3, 3, (40, 1))], 1)
+    end = start + np.concatenate([rng.uniform(-1, 1, (40, 2)), rng.uniform(-3, 3, (40, 1))], 1)
+    end[:5, :2] = start[:5, :2] + 1e-4  # turns on the spot: rot1 = 0 below min_translation
+    np.testing.assert_allclose(sc._odometry_from_poses(start, end, 0.01),
+                               odometry_from_poses(jnp.asarray(start), jnp.asarray(end), 0.01),
+                               atol=1e-12)
+    points = rng.uniform(-40, 40, (40, 2))
+    np.testing.assert_allclose(sc._range_bearing(start, points),
+                               range_bearing(jnp.asarray(start), jnp.asarray(points)),
+                               atol=1e-12)
+    moves = sc._odometry_from_poses(start, end, 0.01)
+    params = _true_params()
+    np.testing.assert_allclose(sc._odometry_std(moves, params),
+                               odometry_std(jnp.asarray(moves), params), rtol=1e-12)
+    errors, features = sc._motion_samples(moves + 0.5, moves)
+    want_errors, want_features = calibrate.motion_samples(jnp.asarray(moves + 0.5),
+                                                          jnp.asarray(moves))
+    np.testing.assert_allclose(errors, want_errors, atol=1e-12)
+    np.testing.assert_allclose(features, want_features, atol=1e-12)
+
+
+def test_detections_against_a_loop():
+    rng = np.random.default_rng(5)
+    steps, rows, trees = 30, 4, 7
+    path = np.concatenate([rng.uniform(-5, 5, (steps, 2)), rng.uniform(-3, 3, (steps, 1))], 1)
+    points = rng.uniform(-8, 8, (trees, 2))
+    params = default_params(range_noise=(0.01, 0.05), bearing_noise=(0.001, 0.01))
+    z = np.stack([rng.uniform(0, 10, (steps, rows)), rng.uniform(-1, 1, (steps, rows))], -1)
+    seen = rng.integers(0, trees, steps)  # one row of each step sees a tree, within noise
+    z[:, 0] = np.asarray(range_bearing(jnp.asarray(path), jnp.asarray(points[seen])))
+    z[:, 0] += rng.normal(size=(steps, 2)) * [0.05, 0.01]
+    valid = rng.random((steps, rows)) < 0.8
+    max_range, half_fov = 9.0, 1.2
+    ranges, hits = sc._detections(path, points, z, valid, params, max_range, half_fov, chunk=8)
+    want_ranges, want_hits = [], []
+    for t in range(steps):
+        for j in range(trees):
+            distance, bearing = np.asarray(range_bearing(jnp.asarray(path[t]),
+                                                         jnp.asarray(points[j])))
+            if not (float(params.min_range) <= distance <= max_range
+                    and abs(bearing) <= half_fov):
+                continue
+            std = sc.smoothing._observation_std(np.array([distance]), params)[0]
+            d_bearing = (z[t, :, 1] - bearing + np.pi) % (2 * np.pi) - np.pi
+            close = ((z[t, :, 0] - distance) / std[0]) ** 2 + (d_bearing / std[1]) ** 2 <= 9
+            want_ranges.append(distance)
+            want_hits.append(bool(np.any(close & valid[t])))
+    assert 10 < len(want_ranges) and 0 < sum(want_hits) < len(want_hits)
+    np.testing.assert_allclose(ranges, want_ranges, rtol=1e-12)
+    np.testing.assert_array_equal(hits, want_hits)

@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.sparse
+import scipy.sparse.linalg
 
 from jaxslam import lineage, smoothing
 from jaxslam.datasets.log_format import odometry_path
@@ -610,3 +611,101 @@ def test_visit_gap_edge_cases_of_smooth_path():
     with pytest.raises(ValueError, match="link_std"):
         smoothing.smooth_path(truth[0], truth[1:], odometry, z, ids, params, visit_gap=5,
                               link_std=0.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# The linear algebra kept between Levenberg-Marquardt steps (fixed pattern, reused order)
+
+
+def _visit_problem(seed=0, steps=24, self_link=False):
+    truth, odometry, z, ids = loop_problem(seed, steps=steps)
+    visit_of_obs, visit_landmark, links = smoothing.split_visits(ids, 2)
+    if self_link:  # a link from a visit to itself: its two Jacobian blocks share entries
+        links = np.concatenate([links, [[1, 1]]])
+    params = default_params()
+    delta, white = smoothing.move_whitening(odometry, params)
+    t, k = np.nonzero(visit_of_obs >= 0)
+    problem = smoothing._Problem(truth[0], delta, white, t, visit_of_obs[t, k], z[t, k],
+                                 smoothing._observation_std(z[t, k, 0], params), 1.0, links,
+                                 0.2, 2.0)
+    rng = np.random.default_rng(seed + 1)
+    landmark = rng.normal(size=(len(visit_landmark), 2)) * 5.0
+    path = truth[1:] + rng.normal(size=truth[1:].shape) * [0.05, 0.05, 0.01]
+    return problem, path, landmark
+
+
+def _coo_jacobian(problem, path, landmark):
+    """The Jacobian built from (row, column, value) triplets (duplicates summed)."""
+    pattern = smoothing._jacobian_pattern(problem, len(path), len(landmark))
+    if pattern.order is not None:  # recover the triplets from the CSR pattern
+        rows = np.repeat(np.arange(pattern.shape[0]), np.diff(pattern.indptr))
+        triplet_rows, triplet_cols = np.empty_like(rows), np.empty_like(rows)
+        triplet_rows[pattern.order], triplet_cols[pattern.order] = rows, pattern.indices
+        pattern = pattern._replace(indptr=None, indices=None, order=None, rows=triplet_rows,
+                                   cols=triplet_cols)
+    return smoothing._linearize(problem, path, landmark, pattern)
+
+
+@pytest.mark.parametrize("self_link", [False, True])
+def test_jacobian_pattern_fills_the_same_matrix_as_triplets(self_link):
+    problem, path, landmark = _visit_problem(self_link=self_link)
+    residual, jacobian, cost = smoothing._linearize(problem, path, landmark)
+    assert (smoothing._jacobian_pattern(problem, len(path), len(landmark)).order is None
+            ) == self_link
+    want_residual, want_jacobian, want_cost = _coo_jacobian(problem, path, landmark)
+    # The same numbers placed in the same entries: equal to the last bit.
+    np.testing.assert_array_equal(residual, want_residual)
+    np.testing.assert_array_equal(jacobian.toarray(), want_jacobian.toarray())
+    assert cost == want_cost
+
+
+def test_factorizer_reuses_its_order_and_solves_exactly():
+    problem, path, landmark = _visit_problem(seed=2, steps=40)
+    _, jacobian, _ = smoothing._linearize(problem, path, landmark)
+    hessian = (jacobian.T @ jacobian).tocsc()
+    rng = np.random.default_rng(0)
+    factorize = smoothing._Factorizer()
+    orders = []
+    for lam in (1e-6, 1e-2, 10.0):  # the LM steps' damped matrices: one pattern
+        damped = hessian + scipy.sparse.diags(lam * np.maximum(hessian.diagonal(), 1e-9))
+        rhs = rng.normal(size=(hessian.shape[0], 3))
+        got = factorize(damped)(rhs)
+        orders.append(factorize.order.copy())
+        want = np.linalg.solve(damped.toarray(), rhs)
+        # Condition ~1e8 at the smallest damping: float64 solves agree to ~1e-8 relative.
+        np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-9 * np.abs(want).max())
+        np.testing.assert_allclose(factorize(damped)(rhs[:, 0]), want[:, 0], rtol=1e-7,
+                                   atol=1e-9 * np.abs(want).max())
+    assert all(np.array_equal(order, orders[0]) for order in orders)
+    smaller = damped[:-2][:, :-2]  # another size: a new order
+    factorize(smaller)
+    assert len(factorize.order) == smaller.shape[0]
+
+
+def test_reused_order_gives_the_same_smoothing_as_fresh_factorisations(monkeypatch):
+    """Keeping one elimination order across the LM steps (and the calibration rounds) changes
+    only the round-off: the solution matches factorising every matrix afresh with SuperLU's
+    minimum-degree order and threshold pivoting (the solver before the order was kept)."""
+    params = default_params(rot1_noise=(0.0, 0.0, 0.01), rot2_noise=(0.0, 0.0, 0.01),
+                            range_noise=(0.0, 0.01), bearing_noise=(0.0, 0.001))
+    truth, odometry, z, ids = loop_problem(1)
+    z = z + np.random.default_rng(11).normal(size=z.shape) * [0.02, 0.002]
+    drifted = odometry_path(odometry, truth[0])
+    kept = smoothing.smooth_path(truth[0], drifted, odometry, z, ids, params,
+                                 calibrate_rounds=2, tol=1e-8)
+
+    class Fresh:
+        def __call__(self, matrix):
+            return scipy.sparse.linalg.splu(scipy.sparse.csc_matrix(matrix),
+                                            permc_spec="MMD_AT_PLUS_A",
+                                            options=dict(SymmetricMode=True)).solve
+
+    monkeypatch.setattr(smoothing, "_Factorizer", Fresh)
+    fresh = smoothing.smooth_path(truth[0], drifted, odometry, z, ids, params,
+                                  calibrate_rounds=2, tol=1e-8)
+    assert kept.iterations == fresh.iterations
+    # Same steps from the same start; the orders differ only in round-off (~1e-12 m here).
+    np.testing.assert_allclose(kept.path, fresh.path, atol=1e-8)
+    np.testing.assert_allclose(kept.landmark, fresh.landmark, atol=1e-8)
+    np.testing.assert_allclose(kept.noise_scales, fresh.noise_scales, rtol=1e-8)
+    np.testing.assert_allclose(kept.cost, fresh.cost, rtol=1e-9)

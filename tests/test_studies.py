@@ -396,7 +396,8 @@ def test_output_folder_contents(study_3):
     names = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
     assert names == ["example_run.npz", "manifest.json", "provenance.toml",
                      "runs/chunk-000000-000003.parquet", "runs/chunk-000003-000004.parquet",
-                     "study.lock", "study.toml", "summary.md", "traces/traces-000000-000003.npz",
+                     "study.lock", "study.toml", "summary.json", "summary.md",
+                     "traces/traces-000000-000003.npz",
                      "traces/traces-000003-000004.npz"]
     assert studies.foreign_files(out) == []
     schema = pq.read_schema(out / "runs/chunk-000000-000003.parquet")
@@ -456,6 +457,8 @@ def test_summary_has_units_and_a_confidence_interval_of_the_mean(study_3):
     assert row["unit"] == "m"
     text = (out / "summary.md").read_text()
     assert "| unit |" in text and "mean 95% CI" in text and "| final_pose_error | m |" in text
+    stored = json.loads((out / "summary.json").read_text())
+    assert stored["study"] == config.name and stored["rows"] == json.loads(json.dumps(rows))
 
 
 def pc_equal(table, condition):
@@ -627,3 +630,41 @@ def test_sweep_over_a_vector_parameter_from_toml_and_set(study_3, tmp_path):
     assert "rot1_noise=[0.0, 0.12, 0.0004]" in (tmp_path / "out" / "summary.md").read_text()
     with pytest.raises(ValueError, match="rot1_noise"):
         studies.load_study_config(None, base + ["sweep.rot1_noise=[[0.0, 0.06], [0.1, 0.2]]"])
+
+
+# --------------------------------------------------------------------------------------------
+# Per-run worlds
+
+
+def test_per_run_worlds_differ_by_run_and_do_not_depend_on_the_batch(tmp_path):
+    """world='per_run': run i's forest and path come from its own key (run_world), whatever
+    runs are simulated with it; the study's results do not depend on the chunk size, and the
+    example run carries run 0's own world."""
+    from sims.batch import run_world, scenario_batch
+
+    config = tiny_config("scenario.world='per_run'", "scenario.path='random'", "chunk_size=3")
+    batch = scenario_batch(config, np.arange(3))
+    centres = np.asarray(batch.tree_centres)
+    assert centres.shape == (3, config.scenario.num_trees, 2)
+    assert np.asarray(batch.truth_pose).shape == (3, config.scenario.num_steps + 1, 3)
+    assert not np.allclose(centres[0], centres[1]) and not np.allclose(centres[1], centres[2])
+    forest, path = run_world(config.scenario, config.seed, 1)
+    np.testing.assert_array_equal(centres[1], np.asarray(forest.centres, np.float32))
+    np.testing.assert_array_equal(np.asarray(batch.truth_pose)[1], np.asarray(path, np.float32))
+    alone = scenario_batch(config, np.array([1]))
+    for whole, part in zip(jax.tree.leaves(batch), jax.tree.leaves(alone)):
+        np.testing.assert_array_equal(np.asarray(whole)[1], np.asarray(part)[0])
+    result_3 = studies.run_study(config, tmp_path / "chunk3", progress=False)
+    result_2 = studies.run_study(tiny_config("scenario.world='per_run'", "scenario.path='random'",
+                                             "chunk_size=2"), tmp_path / "chunk2", progress=False)
+    assert_same_results(tmp_path / "chunk3", tmp_path / "chunk2")
+    assert result_3.table.num_rows == result_2.table.num_rows == 8
+    with np.load(tmp_path / "chunk3" / "example_run.npz") as example:
+        np.testing.assert_array_equal(example["tree_centres"], centres[0])
+
+
+def test_per_run_worlds_refuse_lidar():
+    with pytest.raises(ValueError, match="world='per_run' needs scenario.observation_source"):
+        tiny_config("scenario.world='per_run'", "scenario.observation_source='lidar'")
+    with pytest.raises(ValueError, match="'shared', 'per_run'"):
+        tiny_config("scenario.world='mine'")

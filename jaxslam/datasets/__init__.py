@@ -1,4 +1,5 @@
-"""Robot logs: the documented jaxslam ``.npz`` format and the Victoria Park and MRCLAM loaders."""
+"""Robot logs: the documented jaxslam ``.npz`` format, ROS bags, and the Victoria Park and MRCLAM
+loaders. (``rosbag`` imports the optional ``rosbags`` package only when a bag is read.)"""
 from jaxslam.datasets.log_format import (
     FORMAT_VERSION,
     VICTORIA_PARK_VEHICLE,
@@ -20,6 +21,12 @@ from jaxslam.datasets.mrclam import (
     mrclam_log,
     mrclam_steps,
     read_mrclam,
+)
+from jaxslam.datasets.rosbag import (
+    RosbagError,
+    is_rosbag_path,
+    load_rosbag,
+    rosbag_topics,
 )
 from jaxslam.datasets.victoria_park import (
     GpsError,

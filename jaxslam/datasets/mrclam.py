@@ -3,7 +3,7 @@
 Dataset: K. Y. K. Leung, Y. Halpern, T. D. Barfoot and H. H. T. Liu, "The UTIAS Multi-Robot
 Cooperative Localization and Mapping Dataset", International Journal of Robotics Research
 30(8), 2011, pp. 969-974. Five iRobot Create robots, 15 landmark tubes with barcodes, about
-1,500 s, Vicon ground truth for everything (``../shared/data/mrclam1/README.md``).
+1,500 s, Vicon ground truth for everything (the dataset's own README describes its files).
 
 Files (read in place; whitespace separated; ``#`` lines are comments; robot files have no
 header). N is the robot number 1..5:

@@ -1,6 +1,6 @@
 """The Sydney Victoria Park dataset (Guivant and Nebot, 2001): raw files -> aligned NumPy arrays.
 
-Files (read in place, never copied; ``../shared/data/victoria_park/README.md``):
+Files (read in place, never copied; described in the dataset's own README):
   victoria_park_ascii.zip/LASER.txt  S = 7230 scans: time [s] then B = 361 ranges over
                                      0..180 degrees (no line terminators: 362 floats a scan)
   aa3_dr.mat                         D = 61945 dead-reckoning samples at 40 Hz: time [ms],

@@ -79,7 +79,7 @@ DETECTOR_DEFAULTS = dict(
     method="centroid", min_range=BODY_RANGE, min_points=3, min_width=0.04, max_radius=0.6,
     max_residual=0.1, **CLASSIC_DETECTOR, **GROUND_STRIKE_BRIDGING)
 
-# Motion noise std = c_trans |trans| + c_rot |rot| + c_const (seed 000 Eq. 1). The
+# Motion noise std = c_trans |trans| + c_rot |rot| + c_const (Geiser et al. 2023, Eq. 1). The
 # steering-corrected dead reckoning is locally accurate (its scan-to-scan turns differ from the
 # laser's by 4.4 mrad rms, laser noise included), so the noise is small: 1/8 of the first
 # values (0.01, 0.10, 0.002) / (0.08, 0.02, 0.01), whose heading noise alone (~12 mrad a
