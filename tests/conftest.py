@@ -29,13 +29,29 @@ def _persistent_cache_off_after_each_test():
         compilation_cache.reset_cache()
 
 
+def _num_memory_mappings() -> int:
+    try:
+        with open("/proc/self/maps") as maps:
+            return sum(1 for _ in maps)
+    except OSError:  # not Linux: no limit to watch
+        return 0
+
+
+# Free compiled programs once the process holds this many memory mappings (the kernel's
+# default limit, vm.max_map_count, is 65,530).
+MAPPINGS_BEFORE_CLEARING = 30_000
+
+
 @pytest.fixture(autouse=True, scope="module")
-def _free_compiled_programs_after_each_module():
-    """Drop every compiled program once a test module is done. Each XLA:CPU executable keeps
-    a few memory mappings; a whole default-tier run compiled enough to approach the kernel's
-    limit of 65,530 mappings (``vm.max_map_count``: measured about 3.7 per small program),
-    and the run then crashed inside the XLA compiler."""
+def _free_compiled_programs_when_mappings_run_high():
+    """Drop every compiled program after a test module when the process holds many memory
+    mappings. Each XLA:CPU executable keeps a few (measured about 3.7 per small program); a
+    whole default-tier run compiled enough to approach the kernel's limit of 65,530, and
+    then crashed inside the XLA compiler. Clearing only when needed keeps the programs that
+    later modules reuse."""
     yield
+    if _num_memory_mappings() < MAPPINGS_BEFORE_CLEARING:
+        return
     import gc
     import sys
 

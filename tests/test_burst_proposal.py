@@ -126,6 +126,7 @@ def test_burst_proposal_without_bursts_is_the_one_gaussian_proposal():
                                atol=1e-5)
 
 
+@pytest.mark.slow  # 14 s
 def test_burst_proposal_runs_under_vmap_with_finite_weights():
     config = FilterConfig(num_particles=8, max_landmarks=48, max_obs=8, proposal="mixture",
                           match_pose_uncertainty=True, burst_proposal=True,

@@ -11,6 +11,8 @@ import os
 import pathlib
 import subprocess
 import sys
+
+import pytest
 import tomllib
 
 import test_cli  # the small robot log of the other CLI tests
@@ -96,6 +98,7 @@ print("ok")
     assert result.stdout == "ok\n"
 
 
+@pytest.mark.slow  # 19 s; run --data without MuJoCo stays in the default tier
 def test_analytic_study_runs_without_mujoco(tmp_path):
     out = tmp_path / "demo"
     result = _cli_without_mujoco(["demo", "--quiet", "--out", str(out), *TINY_STUDY], tmp_path)

@@ -181,6 +181,7 @@ def test_segment_end_to_end(park):
     assert result.smoothed_gps.rmse < 2.0 and result.smooth_s > 0.0
 
 
+@pytest.mark.slow  # 37 s; the segment end-to-end test keeps smoothing in the default tier
 @pytest.mark.skipif(not HAVE_DATA, reason=SKIP_REASON)
 def test_batch_smoothing_shapes_and_options(park):
     config = vps.victoria_park_config(num_particles=8, max_landmarks=64)
