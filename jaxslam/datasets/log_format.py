@@ -394,6 +394,18 @@ def wrap_angle_np(angle):
     return angle - 2.0 * np.pi * np.floor((angle + np.pi) / (2.0 * np.pi))
 
 
+def interpolate_poses(times, pose_time, poses):
+    """Poses (T, 3) at ``times`` (T,) from samples at ``pose_time`` (G,), ``poses`` (G, 3).
+
+    x, y linearly; theta linearly on ``np.unwrap``-ed headings (no jump across +-pi), then
+    wrapped to [-pi, pi). Outside [pose_time[0], pose_time[-1]] the end samples are held.
+    """
+    heading = np.unwrap(poses[:, 2])
+    return np.stack([np.interp(times, pose_time, poses[:, 0]),
+                     np.interp(times, pose_time, poses[:, 1]),
+                     wrap_angle_np(np.interp(times, pose_time, heading))], axis=-1)
+
+
 def body_rates(controls, motion_model: str, vehicle: AckermannVehicle | None = None):
     """Velocity of the pose's reference point in the body frame, and the yaw rate.
 

@@ -74,8 +74,8 @@ from jaxslam.datasets.log_format import (
     LogFormatError,
     RobotLog,
     integrate_controls,
+    interpolate_poses,
     validate_log,
-    wrap_angle_np,
 )
 
 NUM_ROBOTS = 5
@@ -415,17 +415,6 @@ def mrclam_steps(run: MrclamRun, max_obs: int = DEFAULT_MAX_OBS, step_dt: float 
 
 # ----------------------------------------------------------------------------------------------
 # Ground truth, controls, the log
-
-
-def interpolate_poses(times, pose_time, poses):
-    """Poses (T, 3) at ``times`` (T,) from samples (G,), (G, 3); held outside the span.
-
-    x, y linearly; theta linearly on ``np.unwrap``-ed headings, then wrapped to [-pi, pi).
-    """
-    heading = np.unwrap(poses[:, 2])
-    return np.stack([np.interp(times, pose_time, poses[:, 0]),
-                     np.interp(times, pose_time, poses[:, 1]),
-                     wrap_angle_np(np.interp(times, pose_time, heading))], axis=-1)
 
 
 def mrclam_log(run: MrclamRun, steps: MrclamSteps,

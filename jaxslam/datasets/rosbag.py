@@ -37,6 +37,7 @@ from jaxslam.datasets.log_format import (
     LogFormatError,
     RobotLog,
     integrate_controls,
+    interpolate_poses,
     odometry_between,
     odometry_path,
     validate_log,
@@ -284,17 +285,6 @@ def compose_poses(poses, offset):
     return np.stack([poses[..., 0] + cos_t * offset[..., 0] - sin_t * offset[..., 1],
                      poses[..., 1] + sin_t * offset[..., 0] + cos_t * offset[..., 1],
                      wrap_angle_np(poses[..., 2] + offset[..., 2])], axis=-1)
-
-
-def interpolate_poses(time, poses, at):
-    """Planar poses (M, 3) at times (M,) linearly interpolated at ``at`` (T,): (T, 3).
-
-    The heading is unwrapped before interpolating (no jump across +-pi) and wrapped after.
-    ``at`` must lie within [time[0], time[-1]].
-    """
-    heading = np.unwrap(poses[:, 2])
-    return np.stack([np.interp(at, time, poses[:, 0]), np.interp(at, time, poses[:, 1]),
-                     wrap_angle_np(np.interp(at, time, heading))], axis=-1)
 
 
 def _pose_of(message, msgtype: str):
@@ -624,7 +614,7 @@ def _sensor_poses(bag: _Bag, odom: PoseTrack, odom_topic: str, scan_s, odom_sour
     """(T, 3) sensor poses at the scan times [s] in the odometry frame."""
     odom_s = odom.time_ns / 1e9
     if odom_source == "pose":
-        base = interpolate_poses(odom_s, odom.pose, scan_s)
+        base = interpolate_poses(scan_s, odom_s, odom.pose)
     elif odom_source == "twist":
         if bag.topics[odom_topic][0] != ODOMETRY_TYPE:
             bag.fail(f"odom_source='twist' needs a {ODOMETRY_TYPE} topic; {odom_topic!r} is "
@@ -634,7 +624,7 @@ def _sensor_poses(bag: _Bag, odom: PoseTrack, odom_topic: str, scan_s, odom_sour
         moves = integrate_controls(odom_s, odom.velocity, scan_s, "velocity",
                                    min_translation=0.0)
         moves[0] = 0.0
-        start = interpolate_poses(odom_s, odom.pose, scan_s[:1])[0]
+        start = interpolate_poses(scan_s[:1], odom_s, odom.pose)[0]
         base = compose_poses(start, odometry_path(moves))
     else:
         raise ValueError(f"odom_source={odom_source!r}; expected 'pose' or 'twist'")
@@ -822,7 +812,7 @@ def _load(bag: _Bag, scan_topic, cloud_topic, odom_topic, truth_topic, *, max_ob
     poses = _sensor_poses(bag, odom, odometry, scan_s, odom_source, sensor_pose)
     offset = np.asarray(sensor_pose, np.float64)
     truth_pose = (None if truth_track is None else compose_poses(
-        interpolate_poses(truth_track.time_ns / 1e9, truth_track.pose, scan_s), offset))
+        interpolate_poses(scan_s, truth_track.time_ns / 1e9, truth_track.pose), offset))
     z, valid, radius = _observations(track, keep, int(max_obs), detector)
     log = RobotLog(
         time=scan_s, motion_model="odometry", controls=_controls(poses, min_translation),

@@ -420,3 +420,17 @@ def test_tiny_translation_is_a_pure_turn():
 def test_integrate_controls_errors(args, message):
     with pytest.raises(lf.LogFormatError, match=message):
         lf.integrate_controls(*args)
+
+
+def test_interpolate_poses_unwraps_the_heading_and_holds_the_ends():
+    """One interpolation serves the MRCLAM and ROS bag loaders: across +-pi the heading goes
+    the short way round; outside the samples' span the end poses are held."""
+    from jaxslam.datasets.log_format import interpolate_poses
+
+    pose_time = np.array([0.0, 1.0])
+    poses = np.array([[0.0, 0.0, np.pi - 0.1], [2.0, -4.0, -np.pi + 0.1]])
+    got = interpolate_poses(np.array([-1.0, 0.5, 2.0]), pose_time, poses)
+    np.testing.assert_allclose(got[1, :2], [1.0, -2.0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(abs(got[1, 2]), np.pi, rtol=0, atol=1e-12)  # not 0
+    np.testing.assert_allclose(got[0], poses[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got[2], poses[1], rtol=0, atol=1e-12)
