@@ -84,9 +84,10 @@ def bench_step(num_particles, max_landmarks, max_obs, association="stable",
 
 def bench_batch(num_runs, chunk, num_particles, max_landmarks, max_obs, num_steps,
                 association="stable", proposal="motion"):
-    from jaxslam.studies import ScenarioConfig, StudyConfig, scenario_batch
+    from jaxslam.studies import StudyConfig, scenario_batch
     from jaxslam.filter import make_filter, scan_filter
     from jaxslam.types import FilterConfig, default_params
+    from sims.config import ScenarioConfig
 
     config = FilterConfig(num_particles=num_particles, max_landmarks=max_landmarks,
                           max_obs=max_obs, association=association, proposal=proposal)

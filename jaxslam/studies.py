@@ -1,7 +1,9 @@
 """Monte Carlo studies and sweeps: chunked, seeded, resumable, one compiled program per study.
 
 A study is R runs of a simulated scenario under one ``FilterConfig``, optionally over a grid of
-``Params`` values (a sweep: G conditions). Run i uses ``fold_in(PRNGKey(seed), i)`` for both
+``Params`` values (a sweep: G conditions). The runs come from the simulator the config names
+(``jaxslam.simulators``: a plugin loaded by its module name, "sims" by default) or from a
+``simulate`` function passed to ``run_study``; this module imports no simulator. Run i uses ``fold_in(PRNGKey(seed), i)`` for both
 its scenario and its filter, so every condition sees the same forests, paths and noise (common
 random numbers). Every (run, condition) pair goes through one compiled program of fixed width
 ``run_width`` (per device), so on one machine type a run's numbers are bit-identical whatever
@@ -29,9 +31,11 @@ import numpy as np
 from jaxslam import metrics, study_store
 from jaxslam.columns import COLUMN_UNITS, column_unit  # noqa: F401 (public here too)
 from jaxslam.filter import estimate, make_filter, scan_filter
-from jaxslam.study_config import (RunBatch, ScenarioConfig, StudyConfig,  # noqa: F401
-                                  demo_study_config, load_study_config,
-                                  study_config_from_dict, study_config_to_dict)
+from jaxslam.simulators import (RunBatch, Simulator, SimulatorUnavailable,  # noqa: F401
+                                 load_simulator, register_simulator)
+from jaxslam.study_config import (StudyConfig, demo_study_config,  # noqa: F401
+                                  load_study_config, study_config_from_dict,
+                                  study_config_to_dict)
 from jaxslam.study_store import StudyError, foreign_files  # noqa: F401 (public here too)
 from jaxslam.types import Params, default_params
 
@@ -39,20 +43,13 @@ SUMMARY_METRICS = ("final_pose_error", "ate_rmse", "ate_rmse_aligned", "map_erro
                    "redundant", "orphan", "num_landmarks", "gospa", "pose_nees", "diverged")
 
 
-def scenario_batch(config: StudyConfig, run_ids):
-    """Simulate the runs ``run_ids`` (``sims.batch.scenario_batch``).
+def scenario_batch(config: StudyConfig, run_ids) -> RunBatch:
+    """Simulate the runs ``run_ids`` (R,) with the simulator ``config.simulator`` names.
 
-    Analytic observations need no MuJoCo; lidar scans (MJX) import it here, and raise
-    ``sims.mujoco_loader.SimulatorNotInstalled`` (an ImportError naming the install command)
-    when it is missing.
+    Raises ``SimulatorUnavailable`` (an ImportError naming the install command) when the
+    simulator, or a part of it these runs need (MuJoCo for "sims" lidar scans), is missing.
     """
-    from sims.batch import scenario_batch as simulate
-
-    if config.scenario.observation_source == "lidar":
-        from sims.mujoco_loader import require_mujoco
-
-        require_mujoco('scenario.observation_source = "lidar" (MJX lidar scans)')
-    return simulate(config, run_ids)
+    return load_simulator(config.simulator).simulate(config, run_ids)
 
 
 # --------------------------------------------------------------------------------------------
@@ -61,7 +58,7 @@ def scenario_batch(config: StudyConfig, run_ids):
 
 def condition_params(config: StudyConfig) -> Params:
     """Stacked ``Params`` of the G sweep conditions (leading axis G)."""
-    base = {"max_range": config.scenario.max_range, **dict(config.params)}
+    base = {"max_range": config.scenario.max_range, **dict(config.params)}  # sensor range
     stacked = [default_params(config.filter, **{**base, **cond}) for cond in config.conditions]
     return jax.tree.map(lambda *leaves: jnp.stack(leaves), *stacked)
 
@@ -117,24 +114,25 @@ def _diameter_error(est, world: RunBatch, threshold):
             count.astype(jnp.int32))
 
 
-def _group_fn(config: StudyConfig):
+def _group_fn(config: StudyConfig, per_run_world: bool):
     """jit(vmap over a group of (run, condition) pairs) of ``_run_metrics``.
 
     Arguments: keys, params (leaves with the pair axis first), controls, observations,
     tree_seen (pair axis first), then truth_pose, tree_centres, tree_radii (one world shared
-    by every run, or with the pair axis first when ``scenario.world = "per_run"``).
+    by every run, or with the pair axis first when ``per_run_world``).
     """
 
     def per_pair(key, params, controls, observations, seen, truth_pose, centres, radii):
         world = RunBatch(None, None, truth_pose, centres, radii, seen)
         return _run_metrics(config, key, params, controls, observations, world)
 
-    world_axis = 0 if _per_run_world(config) else None
+    world_axis = 0 if per_run_world else None
     return jax.jit(jax.vmap(per_pair, in_axes=(0, 0, 0, 0, 0) + (world_axis,) * 3))
 
 
-def _per_run_world(config: StudyConfig) -> bool:
-    return config.scenario.world == "per_run"
+def _per_run_world(scenario: RunBatch) -> bool:
+    """Whether each run of the batch has its own world (truth_pose (R, T+1, 3))."""
+    return np.ndim(scenario.truth_pose) == 3
 
 
 # --------------------------------------------------------------------------------------------
@@ -192,10 +190,10 @@ def _chunk_rows(config, start, stop, values) -> dict:
     return rows
 
 
-def _chunk_table(config, start, stop, values, seconds):
+def _chunk_table(config, start, stop, values, seconds, num_steps: int):
     """The chunk's pyarrow Table: units per field, and in the schema metadata the units, the
     resolved study config and the chunk's timing (timing lives here, not in a per-run column:
-    it is one measurement of the whole chunk)."""
+    it is one measurement of the whole chunk). num_steps: T, the filter steps of a run."""
     import pyarrow as pa
     import tomli_w
 
@@ -206,8 +204,7 @@ def _chunk_table(config, start, stop, values, seconds):
     metadata = {"jaxslam.units": json.dumps({n: column_unit(n) for n in rows}),
                 "jaxslam.study": tomli_w.dumps(study_config_to_dict(config)),
                 "jaxslam.filter_seconds": repr(float(seconds)),
-                "jaxslam.update_rate_hz": repr(pairs * config.scenario.num_steps
-                                               / max(seconds, 1e-9))}
+                "jaxslam.update_rate_hz": repr(pairs * num_steps / max(seconds, 1e-9))}
     return pa.table(rows, schema=pa.schema(fields, metadata=metadata))
 
 
@@ -258,11 +255,12 @@ class _ChunkRunner:
     devices: XLA partitions and fuses it differently.
     """
 
-    def __init__(self, config: StudyConfig):
+    def __init__(self, config: StudyConfig, simulate=None):
         self.config = config
+        self.simulate = simulate  # None: the config's simulator (``scenario_batch``)
         self.params = condition_params(config)
         self.width = config.run_width
-        self.function = _group_fn(config)
+        self.function = None  # built at the first chunk, for its kind of world
         self.devices = jax.local_devices()
         self.compiled: dict = {}  # device -> the compiled program placed on it
         self.compile_seconds = self.filter_seconds = self.simulator_seconds = 0.0
@@ -303,7 +301,11 @@ class _ChunkRunner:
         run_ids = np.arange(start, stop)
         num_runs, num_conditions = run_ids.size, len(config.conditions)
         tick = time.perf_counter()
-        scenario = jax.block_until_ready(scenario_batch(config, run_ids))
+        simulate = scenario_batch if self.simulate is None else self.simulate
+        scenario = jax.block_until_ready(simulate(config, run_ids))
+        per_run_world = _per_run_world(scenario)
+        if self.function is None:
+            self.function = _group_fn(config, per_run_world)
         self.simulator_seconds += time.perf_counter() - tick
         keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(config.seed), i))(
             jnp.asarray(run_ids, jnp.uint32))
@@ -324,8 +326,7 @@ class _ChunkRunner:
             per_pair = jax.tree.map(lambda x: x[runs], per_run)
             params = jax.tree.map(lambda x: x[conditions], params_by_condition)
             device = self.devices[index % len(self.devices)]
-            pair_world = (jax.tree.map(lambda x: x[runs], world) if _per_run_world(config)
-                          else world)
+            pair_world = jax.tree.map(lambda x: x[runs], world) if per_run_world else world
             args = jax.device_put((*per_pair[:1], params, *per_pair[1:], *pair_world), device)
             groups_args.append((device, args))
         self._compile(groups_args)
@@ -343,13 +344,15 @@ class _ChunkRunner:
         return ChunkOutput(scenario, values, errors, example, seconds)
 
 
-def recompute_runs(config: StudyConfig, start: int, stop: int) -> ChunkOutput:
+def recompute_runs(config: StudyConfig, start: int, stop: int,
+                   simulate=None) -> ChunkOutput:
     """Simulate and filter the runs [start, stop) of a study again, under every condition.
 
-    The numbers equal the stored ones bit for bit (same run keys, same compiled width),
-    so a run's full trajectory and map can be recovered without storing every run's.
+    The numbers equal the stored ones bit for bit (same run keys, same compiled width, the
+    same simulator: ``simulate`` as in ``run_study``), so a run's full trajectory and map can
+    be recovered without storing every run's.
     """
-    return _ChunkRunner(config)(start, stop)
+    return _ChunkRunner(config, simulate)(start, stop)
 
 
 def open_study(config: StudyConfig, out_dir) -> list[tuple[int, int]]:
@@ -380,8 +383,8 @@ def write_chunk(out_dir, config: StudyConfig, start: int, stop: int,
     import pyarrow.parquet as pq
 
     out_dir = pathlib.Path(out_dir)
-    table = _chunk_table(config, start, stop, output.values, output.seconds)
     errors = np.asarray(output.errors)
+    table = _chunk_table(config, start, stop, output.values, output.seconds, errors.shape[-1])
     traces = study_store.traces_path(out_dir, start, stop)
     study_store.atomic_write(traces, lambda p: _save_npz(
         p, run_id=table.column("run_id").to_numpy(),
@@ -395,12 +398,19 @@ def write_chunk(out_dir, config: StudyConfig, start: int, stop: int,
     return written + [chunk]
 
 
-def run_study(config: StudyConfig, out_dir, progress: bool = True) -> StudyResult:
-    """Run (or resume) a study; see ``jaxslam.study_store`` for what lands in ``out_dir``."""
+def run_study(config: StudyConfig, out_dir, progress: bool = True,
+              simulate=None) -> StudyResult:
+    """Run (or resume) a study; see ``jaxslam.study_store`` for what lands in ``out_dir``.
+
+    simulate: (config, run_ids (R,)) -> ``RunBatch``, the runs' inputs and truth; None (the
+    default) uses the simulator the config names (``config.simulator``, loaded by name from
+    the registry of ``jaxslam.simulators.register_simulator``). Run i must draw from
+    ``fold_in(PRNGKey(config.seed), i)`` alone (``Simulator``) for chunks to resume.
+    """
     from tqdm.auto import tqdm
 
     out_dir = pathlib.Path(out_dir)
-    runner = _ChunkRunner(config)  # anything it refuses is refused before a file is written
+    runner = _ChunkRunner(config, simulate)  # anything it refuses is refused before a file is written
     with study_store.study_lock(out_dir):
         pending = open_study(config, out_dir)
         bar = tqdm(pending, desc=f"study {config.name}", unit="chunk", disable=not progress)

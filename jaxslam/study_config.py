@@ -1,105 +1,36 @@
-"""Study configuration: the simulated scenario and the study (runs, chunks, filter, sweeps),
+"""Study configuration: the study (runs, chunks, filter, sweeps) and the simulated scenario,
 read from TOML with "section.key=value" overrides; every error names the key and the allowed
 values. Used by ``jaxslam.studies`` and the ``jaxslam`` command.
+
+The [scenario] section belongs to the study's simulator (``simulator``, default "sims"): it
+reaches the simulator plugin as a plain mapping, and the plugin checks it and builds its own
+settings (``jaxslam.simulators``); nothing here knows a scenario key.
 """
 from __future__ import annotations
 
 import dataclasses
 import itertools
-import math
 import pathlib
 import tomllib
-from typing import Any, NamedTuple
+from typing import Any
 
-import jax.numpy as jnp
-
+from jaxslam.config_rules import Rule, check_fields, check_keys, check_value, normalise
+from jaxslam.simulators import DEFAULT_SIMULATOR, SimulatorUnavailable, load_simulator
 from jaxslam.types import FilterConfig, Params, default_params
 
 _SECTIONS = ("filter", "scenario", "params", "sweep")
 
-
-# --------------------------------------------------------------------------------------------
-# Value rules: (kind, lower bound, bound included); kinds "int", "float", "str"
-
 _STUDY_RULES = {
-    "name": ("str", None, None),
-    "num_runs": ("int", 1, True),
-    "chunk_size": ("int", 1, True),
-    "run_width": ("int", 1, True),
-    "seed": ("int", 0, True),
-    "divergence_threshold": ("float", 0.0, False),
-    "map_match_threshold": ("float", 0.0, False),
-    "gospa_cutoff": ("float", 0.0, False),
+    "name": Rule("str"),
+    "simulator": Rule("str"),
+    "num_runs": Rule("int", 1, True),
+    "chunk_size": Rule("int", 1, True),
+    "run_width": Rule("int", 1, True),
+    "seed": Rule("int", 0, True),
+    "divergence_threshold": Rule("float", 0.0, False),
+    "map_match_threshold": Rule("float", 0.0, False),
+    "gospa_cutoff": Rule("float", 0.0, False),
 }
-_SCENARIO_RULES = {
-    "forest": ("str", None, None),
-    "num_trees": ("int", 1, True),
-    "size": ("float", 0.0, False),
-    "path": ("str", None, None),
-    "num_steps": ("int", 1, True),
-    "step_length": ("float", 0.0, False),
-    "max_range": ("float", 0.0, False),
-    "observation_source": ("str", None, None),
-    "detection": ("str", None, None),
-    "odometry_noise_scale": ("float", 0.0, True),
-    "world": ("str", None, None),
-}
-_MAX_SEED = 2**32  # fold_in(PRNGKey(seed), run) keys: an unsigned 32-bit seed
-
-
-def _describe(rule) -> str:
-    kind, low, inclusive = rule
-    if kind == "str":
-        return "a string"
-    what = "an integer" if kind == "int" else "a number"
-    if low is None:
-        return what
-    if kind == "int" and low == 1 and inclusive:
-        return "a positive integer (>= 1)"
-    return f"{what} {'>=' if inclusive else '>'} {low:g}"
-
-
-def _value_error(section: str, key: str, value, rule) -> ValueError:
-    where = f"{section}.{key}" if section else key
-    hint = ""
-    if isinstance(value, str) and rule[0] != "str":
-        hint = " (a string: write numbers without quotes)"
-    return ValueError(f"study config {where}={value!r} is invalid; expected "
-                      f"{_describe(rule)}{hint}")
-
-
-def _check_value(section: str, key: str, value, rule) -> None:
-    kind, low, inclusive = rule
-    if kind == "str":
-        if not isinstance(value, str):
-            raise _value_error(section, key, value, rule)
-        return
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise _value_error(section, key, value, rule)
-    if kind == "int" and not isinstance(value, int):
-        raise _value_error(section, key, value, rule)
-    if kind == "float" and not math.isfinite(value):
-        raise _value_error(section, key, value, rule)
-    if low is not None and (value < low or (value == low and not inclusive)):
-        raise _value_error(section, key, value, rule)
-    if section == "" and key == "seed" and value >= _MAX_SEED:
-        raise ValueError(f"study config seed={value!r} is invalid; expected an integer in "
-                         f"[0, {_MAX_SEED})")
-
-
-def _check_fields(section: str, config, rules: dict) -> None:
-    for key, rule in rules.items():
-        _check_value(section, key, getattr(config, key), rule)
-
-
-def _normalise(section: str, given: dict, rules: dict) -> dict:
-    """Check every given value against its rule; integers given for floats become floats."""
-    out = {}
-    for key, value in given.items():
-        rule = rules[key]
-        _check_value(section, key, value, rule)
-        out[key] = float(value) if rule[0] == "float" else value
-    return out
 
 
 def _check_filter_types(section: dict) -> None:
@@ -134,59 +65,26 @@ def _check_param_value(where: str, key: str, value, base: dict) -> None:
         raise ValueError(f"study config {where}={value!r} is refused: {error}") from None
 
 
-_SCENARIO_CHOICES = {"forest": ("random", "plantation"), "path": ("loop", "lawnmower", "random"),
-                     "observation_source": ("analytic", "lidar"),
-                     "detection": ("centroid", "kasa", "geometric", "ransac"),
-                     "world": ("shared", "per_run")}
-
-
-def _check_scenario(section: dict) -> None:
-    for key, allowed in _SCENARIO_CHOICES.items():
-        if key in section and section[key] not in allowed:
-            raise ValueError(f"scenario.{key}={section[key]!r} is not supported; expected one of "
-                             f"{list(allowed)}")
-
-
-@dataclasses.dataclass(frozen=True)
-class ScenarioConfig:
-    """The simulated world of every run (see ``sims.scenario``).
-
-    forest: "random" or "plantation"; num_trees; size: square side [m]; path: "loop",
-    "lawnmower" or "random"; num_steps: T; step_length [m]; max_range [m] of the sensor;
-    observation_source: "analytic" (range-bearing to trunk centres with Table 2 noise) or
-    "lidar" (MJX scans + trunk detection); detection: centroid | kasa | geometric | ransac;
-    odometry_noise_scale: multiplies the Table 1 noise of the simulated odometry.
-    world: "shared" (every run follows one path through one forest, drawn from the seed:
-    runs differ in noise only, for paired comparisons) or "per_run" (run i draws its own
-    forest and path from its run key: the spread over worlds is part of every metric;
-    analytic observations only).
-    """
-
-    forest: str = "random"
-    num_trees: int = 80
-    size: float = 60.0
-    path: str = "loop"
-    num_steps: int = 200
-    step_length: float = 0.5
-    max_range: float = 20.0
-    observation_source: str = "analytic"
-    detection: str = "kasa"
-    odometry_noise_scale: float = 1.0
-    world: str = "shared"
-
-    def __post_init__(self):
-        _check_fields("scenario", self, _SCENARIO_RULES)
-        _check_scenario(dataclasses.asdict(self))
-        if self.world == "per_run" and self.observation_source != "analytic":
-            raise ValueError("scenario.world='per_run' needs scenario.observation_source="
-                             "'analytic' (lidar scans are cast in one MJX model of a shared "
-                             "forest); use world='shared' for lidar studies")
+def _scenario_settings(simulator: str, scenario):
+    """The simulator's settings of a [scenario] mapping (None: all its defaults), or a
+    settings object checked again by its simulator; a simulator that is not installed is a
+    config error (ValueError naming ``simulator``)."""
+    try:
+        plugin = load_simulator(simulator)
+    except SimulatorUnavailable as error:
+        raise ValueError(f"study config simulator={simulator!r}: {error}") from None
+    return plugin.settings({} if scenario is None else scenario)
 
 
 @dataclasses.dataclass(frozen=True)
 class StudyConfig:
     """Everything that defines a study. ``params`` are overrides of ``default_params``;
     ``sweep`` maps Params fields to lists of values (cartesian grid of conditions).
+
+    simulator: the module name of the study's simulator plugin (``jaxslam.simulators``).
+    scenario: its settings; given as a mapping of [scenario] keys (or None: its defaults),
+    the simulator builds and checks them, so ``config.scenario`` is always its settings
+    object (for "sims", a ``sims.config.ScenarioConfig``).
 
     chunk_size: runs per result file (the unit of resume). run_width: (run, condition) pairs
     per compiled filter call and per device, fixed for the whole study: every chunk is cut
@@ -196,12 +94,13 @@ class StudyConfig:
     """
 
     name: str = "study"
+    simulator: str = DEFAULT_SIMULATOR
     num_runs: int = 100
     chunk_size: int = 50
     run_width: int = 1
     seed: int = 0
     filter: FilterConfig = FilterConfig()
-    scenario: ScenarioConfig = ScenarioConfig()
+    scenario: Any = None
     params: tuple = ()
     sweep: tuple = ()
     divergence_threshold: float = 2.0
@@ -209,11 +108,10 @@ class StudyConfig:
     gospa_cutoff: float = 2.0
 
     def __post_init__(self):
-        _check_fields("", self, _STUDY_RULES)
-        for name, cls in (("filter", FilterConfig), ("scenario", ScenarioConfig)):
-            if not isinstance(getattr(self, name), cls):
-                raise ValueError(f"study {name}={getattr(self, name)!r}; expected a "
-                                 f"{cls.__name__}")
+        check_fields("", self, _STUDY_RULES)
+        if not isinstance(self.filter, FilterConfig):
+            raise ValueError(f"study filter={self.filter!r}; expected a FilterConfig")
+        object.__setattr__(self, "scenario", _scenario_settings(self.simulator, self.scenario))
         params_fields = set(Params._fields)
         for section, items in (("params", self.params), ("sweep", self.sweep)):
             for key, _ in items:
@@ -260,23 +158,18 @@ def _as_tuple_items(mapping: dict) -> tuple:
 
 
 def study_config_to_dict(config: StudyConfig) -> dict:
-    """Plain dict (TOML-ready) of a study config."""
+    """Plain dict (TOML-ready) of a study config. ``simulator`` is left out when it is the
+    default one, so the study.toml, folder digest and resume check of a study on the
+    built-in simulator do not change with the plugin mechanism."""
     out = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)
            if f.name not in ("filter", "scenario", "params", "sweep")}
+    if out["simulator"] == DEFAULT_SIMULATOR:
+        del out["simulator"]
     out["filter"] = dataclasses.asdict(config.filter)
-    out["scenario"] = dataclasses.asdict(config.scenario)
+    out["scenario"] = load_simulator(config.simulator).to_dict(config.scenario)
     out["params"] = {k: list(v) if isinstance(v, tuple) else v for k, v in config.params}
     out["sweep"] = {k: list(v) for k, v in config.sweep}
     return out
-
-
-def _check_keys(section: str, given: dict, cls) -> None:
-    allowed = [f.name for f in dataclasses.fields(cls)]
-    for key in given:
-        if key not in allowed:
-            where = f"{section}.{key}" if section else key
-            raise ValueError(f"unknown study config key {where!r}; allowed keys"
-                             f"{' in [' + section + ']' if section else ''}: {allowed}")
 
 
 def study_config_from_dict(data: dict) -> StudyConfig:
@@ -284,7 +177,8 @@ def study_config_from_dict(data: dict) -> StudyConfig:
 
     Every value is type-checked here (a string where a number belongs, a float seed, a
     count below 1...), before anything is written; a float field given as an integer is
-    stored as a float, so ``size = 30`` and ``size = 30.0`` are the same study.
+    stored as a float, so ``size = 30`` and ``size = 30.0`` are the same study. The
+    [scenario] section goes to the simulator named by ``simulator`` as a plain mapping.
     """
     data = dict(data)
     sections = {}
@@ -294,14 +188,15 @@ def study_config_from_dict(data: dict) -> StudyConfig:
             raise ValueError(f"{name} must be a [{name}] section of key = value lines; got "
                              f"{name} = {section!r}")
         sections[name] = dict(section)
-    _check_keys("", data, StudyConfig)
+    check_keys("", data, StudyConfig)
     for key, value in data.items():
         if isinstance(value, dict):
             raise ValueError(f"{key!r} is not a section of a study config (sections: "
                              f"{list(_SECTIONS)}); {key} is a single value: {key} = ...")
-    _check_keys("filter", sections["filter"], FilterConfig)
-    _check_keys("scenario", sections["scenario"], ScenarioConfig)
-    _check_scenario(sections["scenario"])
+    check_keys("filter", sections["filter"], FilterConfig)
+    simulator = data.get("simulator", DEFAULT_SIMULATOR)
+    check_value("", "simulator", simulator, _STUDY_RULES["simulator"])
+    scenario = _scenario_settings(simulator, sections["scenario"])  # the simulator's checks
     _check_filter_types(sections["filter"])
     for key, values in sections["sweep"].items():
         if not isinstance(values, list) or not values:
@@ -310,10 +205,8 @@ def study_config_from_dict(data: dict) -> StudyConfig:
         if isinstance(value, dict):
             raise ValueError(f"params.{name} must be a number or a list of numbers; got a "
                              f"section {value!r}")
-    data = _normalise("", data, _STUDY_RULES)
-    return StudyConfig(filter=FilterConfig(**sections["filter"]),
-                       scenario=ScenarioConfig(**_normalise("scenario", sections["scenario"],
-                                                            _SCENARIO_RULES)),
+    data = normalise("", data, _STUDY_RULES)
+    return StudyConfig(filter=FilterConfig(**sections["filter"]), scenario=scenario,
                        params=_as_tuple_items(sections["params"]),
                        sweep=_as_tuple_items(sections["sweep"]), **data)
 
@@ -363,20 +256,4 @@ def demo_study_config() -> StudyConfig:
     the loose boundary, P=64 particles; a few minutes on a 2-core CPU."""
     return StudyConfig(name="demo", num_runs=64, chunk_size=32, seed=0,
                        filter=FilterConfig(num_particles=64, max_landmarks=96, max_obs=16),
-                       scenario=ScenarioConfig(num_steps=150))
-
-
-class RunBatch(NamedTuple):
-    """Scenarios of a chunk of runs. Run-dependent leaves have a leading axis R; the forest is
-    shared by every run of a study (runs differ in odometry and observation noise).
-
-    controls: (R, T, 3); observations: leaves (R, T, K, ...); truth_pose: (T+1, 3);
-    tree_centres: (N, 2); tree_radii: (N,); tree_seen: (R, N) trees observed in each run.
-    """
-
-    controls: jnp.ndarray
-    observations: Any
-    truth_pose: jnp.ndarray
-    tree_centres: jnp.ndarray
-    tree_radii: jnp.ndarray
-    tree_seen: jnp.ndarray
+                       scenario={"num_steps": 150})

@@ -1,13 +1,26 @@
 """MuJoCo-MJX forest simulation: forest worlds, lidar scans, robot paths and scenarios.
 
+``sims.scan_3d`` is ``sims.scan3d.scan_3d`` (a point cloud, with the per-beam ranges of
+``sims.lidar.scan_3d`` kept as ``Cloud.ranges``); leaning-trunk forests on uneven ground are
+``sims.forest3d``.
+
 The names below are loaded lazily (PEP 562), and MuJoCo itself only when an MJX world, a lidar
 scan or the wheeled robot is built (``sims.mujoco_loader``): analytic scenarios and
 ``import sims`` need no MuJoCo. The simulator's physics is installed with
 ``pip install "jaxslam[sim]"``.
+
+Importing ``sims`` registers it as the study simulator "sims" (``jaxslam.simulators``): its
+[scenario] settings are ``sims.config.ScenarioConfig``, its runs ``sims.batch.scenario_batch``
+(imported at the first simulation). A study config naming ``simulator = "sims"`` (the default)
+loads this package by that name.
 """
 from __future__ import annotations
 
 import importlib
+
+from jaxslam.simulators import register_simulator
+from sims.config import scenario_config
+from sims.mujoco_loader import lazy_functions
 
 _PUBLIC = {
     "Clutter": "sims.forest",
@@ -21,6 +34,17 @@ _PUBLIC = {
     "random_forest": "sims.forest",
     "sample_radii": "sims.forest",
     "world_from_forest": "sims.forest",
+    "BLACK_CHERRY_DBH": "sims.forest3d",
+    "Forest3D": "sims.forest3d",
+    "Terrain": "sims.forest3d",
+    "World3D": "sims.forest3d",
+    "breast_height_points": "sims.forest3d",
+    "flat_terrain": "sims.forest3d",
+    "ground_height": "sims.forest3d",
+    "make_world_3d": "sims.forest3d",
+    "random_forest_3d": "sims.forest3d",
+    "random_terrain": "sims.forest3d",
+    "sample_dbh": "sims.forest3d",
     "TABLE2_RANGE_NOISE": "sims.lidar",
     "Scan": "sims.lidar",
     "add_range_noise": "sims.lidar",
@@ -29,7 +53,9 @@ _PUBLIC = {
     "layer_elevations": "sims.lidar",
     "scan_2d": "sims.lidar",
     "scan_2d_full": "sims.lidar",
-    "scan_3d": "sims.lidar",
+    "Cloud": "sims.scan3d",
+    "beam_directions": "sims.scan3d",
+    "scan_3d": "sims.scan3d",
     "lawnmower_path": "sims.paths",
     "loop_path": "sims.paths",
     "noisy_odometry": "sims.paths",
@@ -37,14 +63,19 @@ _PUBLIC = {
     "random_smooth_path": "sims.paths",
     "resample_polyline": "sims.paths",
     "true_moves": "sims.paths",
+    "ScenarioConfig": "sims.config",
+    "scenario_config": "sims.config",
     "Scenario": "sims.scenario",
     "analytic_observations": "sims.scenario",
     "build_scenario": "sims.scenario",
     "default_scenario": "sims.scenario",
 }
-_SUBMODULES = ("batch", "forest", "lidar", "mujoco_loader", "paths", "robot", "scenario")
+_SUBMODULES = ("batch", "config", "forest", "lidar", "mujoco_loader", "paths", "robot", "scenario")
 
 __all__ = sorted(_PUBLIC)
+
+register_simulator("sims", simulate=lazy_functions("sims.batch", "scenario_batch")[0],
+                   settings=scenario_config)
 
 
 def __getattr__(name: str):

@@ -1,5 +1,6 @@
-"""Batches of simulated runs for Monte Carlo studies (``jaxslam.studies`` calls this lazily,
-so the library itself never imports MuJoCo).
+"""Batches of simulated runs for Monte Carlo studies: ``scenario_batch`` is the ``simulate``
+function of the "sims" study simulator (registered by ``sims/__init__.py``; ``jaxslam.studies``
+loads it by name, so the library itself never imports the simulator or MuJoCo).
 
 Run i draws from its key ``fold_in(PRNGKey(seed), i)``: its odometry and observation noise
 from ``fold_in(key, 0)`` (the filter uses ``fold_in(key, 1)``) and, with
@@ -15,8 +16,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxslam.study_config import RunBatch, ScenarioConfig, StudyConfig
+from jaxslam.simulators import RunBatch
+from jaxslam.study_config import StudyConfig
 from jaxslam.types import Params, default_params
+from sims.config import ScenarioConfig
+from sims.mujoco_loader import require_mujoco
 
 # 1440 beams (0.25 degree): at 720, trunks beyond ~10 m get fewer than 4 points.
 LIDAR_BEAMS = 1440
@@ -90,10 +94,15 @@ def scenario_batch(config: StudyConfig, run_ids: np.ndarray, width: int | None =
     inputs never depend on how many runs are asked for at once. Leaves (R, ...) for the
     controls, observations and tree_seen; truth_pose (T+1, 3), tree_centres (N, 2) and
     tree_radii (N,) are the shared world's, or (R, ...) with ``scenario.world = "per_run"``.
+
+    Lidar scans need MuJoCo: without it, ``SimulatorNotInstalled`` (an ImportError naming the
+    install command) is raised before anything is simulated.
     """
     run_ids = np.asarray(run_ids, np.int64).reshape(-1)
     if run_ids.size == 0:
         raise ValueError("scenario_batch needs at least one run id")
+    if config.scenario.observation_source == "lidar":
+        require_mujoco('scenario.observation_source = "lidar" (MJX lidar scans)')
     width = config.run_width if width is None else int(width)
     if config.scenario.world == "per_run":
         return _per_run_batch(config, run_ids, width)

@@ -329,3 +329,20 @@ def mj_model_of(forest: Forest, trunk_height: float = 6.0, sensor_height: float 
     """The CPU ``mujoco.MjModel`` of a forest (same geoms and order as ``make_world``)."""
     return mujoco.MjModel.from_xml_string(forest_mjcf(forest, trunk_height, sensor_height,
                                                       ground))
+
+
+def mjcf_document(geom_lines: list[str], sensor_height: float = 0.5) -> str:
+    """An MJCF model around ``geom_lines`` (``<geom .../>`` strings of the worldbody): the
+    materials of ``forest_mjcf`` (bark, leaf, soil; ``mjx.ray`` crashes without one) and its
+    sensor body (slide joint along z, no geom: the degree of freedom ``mjx.forward`` needs)
+    at ``sensor_height`` [m], after the geoms. Used by ``sims.forest3d``."""
+    lines = ['<mujoco model="forest">', "<asset>",
+             '<material name="bark" rgba="0.45 0.3 0.2 1"/>',
+             '<material name="leaf" rgba="0.2 0.5 0.2 1"/>',
+             '<material name="soil" rgba="0.4 0.35 0.3 1"/>', "</asset>", "<worldbody>"]
+    lines += list(geom_lines)
+    lines += [f'<body name="sensor" pos="0 0 {sensor_height}">',
+              '<joint name="lift" type="slide" axis="0 0 1"/>',
+              '<inertial mass="1" pos="0 0 0" diaginertia="0.01 0.01 0.01"/>',
+              "</body>", "</worldbody>", "</mujoco>"]
+    return "\n".join(lines)

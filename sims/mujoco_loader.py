@@ -8,7 +8,7 @@ read raises ``SimulatorNotInstalled``, whose message names what needs MuJoCo and
 that installs it. The import drops the "Failed to import warp" lines MJX prints when the
 optional NVIDIA Warp backend is absent (jaxslam never uses that backend).
 
-Only the standard library is imported here.
+Only the standard library and ``jaxslam.simulators`` (standard library only) are imported here.
 """
 from __future__ import annotations
 
@@ -17,16 +17,19 @@ import importlib
 import io
 import sys
 
-INSTALL_COMMAND = 'pip install "jaxslam[sim]"'
+from jaxslam.simulators import SIM_INSTALL_COMMAND, SimulatorUnavailable
+
+INSTALL_COMMAND = SIM_INSTALL_COMMAND
 SIMULATOR_PARTS = "jaxslam's simulator (MJX forest worlds, lidar scans, the wheeled robot)"
 # Lines that ``mujoco/mjx/warp/__init__.py`` prints (print(), not a warning) when the optional
 # NVIDIA Warp backend is not installed.
 WARP_NOISE = ("Failed to import warp:", "Failed to import mujoco_warp:")
 
 
-class SimulatorNotInstalled(ImportError):
+class SimulatorNotInstalled(SimulatorUnavailable):
     """MuJoCo-MJX is needed but not installed; the message says what needs it and how to
-    install it."""
+    install it (a ``jaxslam.simulators.SimulatorUnavailable``, which the ``jaxslam`` command
+    reports in one line)."""
 
 
 def missing_message(needed_by: str) -> str:

@@ -198,7 +198,7 @@ def test_config_show_errors_name_the_key(tmp_path, capsys):
 def _fake_bench(tmp_path, monkeypatch):
     script = tmp_path / "filter_step.py"
     script.write_text("def main(argv):\n    print('bench argv', argv)\n    return 0\n")
-    monkeypatch.setattr(cli, "BENCHMARK_PATH", script)
+    monkeypatch.setattr(cli.bench, "BENCHMARK_PATH", script)
     monkeypatch.setenv("JAXSLAM_CACHE_DIR", str(tmp_path / "cache"))
 
 
@@ -227,7 +227,7 @@ def test_bench_passes_arguments_through(tmp_path, monkeypatch, capsys):
 
 
 def test_mujoco_import_prints_no_warp_lines():
-    code = ("from jaxslam import cli; cli.import_mujoco_quietly(); "
+    code = ("from sims.mujoco_loader import import_quietly; import_quietly('mujoco.mjx'); "
             "import sims.forest, sims.lidar, mujoco.mjx; print('imported')")
     result = subprocess.run([PYTHON, "-c", code], capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
@@ -393,7 +393,7 @@ def test_study_export_picks_the_run_and_condition(tmp_path, monkeypatch, capsys)
                                      example=dict(mean_pose=mean))
 
     monkeypatch.setattr(studies, "recompute_runs", recompute)
-    monkeypatch.setattr(cli, "enable_compilation_cache", lambda: None)
+    monkeypatch.setattr(cli.common, "enable_compilation_cache", lambda: None)
     assert cli.main(["export", str(folder), "--run", "2", "--condition", "1",
                      "--dt", "0.5"]) == 0
     assert calls == [(3, 2, 2, 3)]

@@ -109,10 +109,11 @@ def test_map_title_names_study_run_and_condition():
 
 def test_plot_map_takes_the_title_from_the_study_folder(tmp_path, monkeypatch):
     np.savez(tmp_path / "example_run.npz", **_example())
-    monkeypatch.setattr(plots, "study_info", lambda folder: STUDY_INFO
+    monkeypatch.setattr(plots.labels, "study_info", lambda folder: STUDY_INFO
                         if pathlib.Path(folder) == tmp_path else None)
     figures = []
-    monkeypatch.setattr(plots, "save_figure", lambda fig, path: figures.append(fig) or path)
+    monkeypatch.setattr(plots.figure, "save_figure",
+                        lambda fig, path: figures.append(fig) or path)
     plots.plot_map(tmp_path / "example_run.npz", tmp_path / "map.png")
     assert "Study 'forest'" in figures[0].axes[0].get_title()
 
@@ -392,7 +393,7 @@ def tiny_study(tmp_path_factory):
 def test_plot_study_titles_and_labels_of_a_real_study(tiny_study, monkeypatch):
     _, out, _ = tiny_study
     figures = {}
-    monkeypatch.setattr(plots, "save_figure",
+    monkeypatch.setattr(plots.figure, "save_figure",
                         lambda fig, path: figures.setdefault(pathlib.Path(path).name, fig) and path)
     plots.plot_study(out)
     assert sorted(figures) == ["box_ate_rmse.png", "box_final_pose_error.png",

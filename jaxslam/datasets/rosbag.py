@@ -8,11 +8,15 @@ becomes what (``docs/rosbag.md``):
                              outside [range_min, range_max] and non-positive ones are no return
                              (+inf); trunks by ``jaxslam.detect.detect_trunks`` on every scan.
   sensor_msgs/PointCloud2    points (N, 3) (float32/float64 x, y, z fields, any point_step and
-                             row_step, either byte order, NaN points skipped); by default a
-                             height band of the cloud is flattened into a 2D scan of
-                             ``cloud_beams`` azimuth bins (nearest return per bin), the planar
-                             counterpart of ``jaxslam.detect.clip_points_by_height``, and
-                             detected like a LaserScan; or a ``cloud_detector`` callable.
+                             row_step, either byte order, NaN points skipped); trunks by
+                             ``cloud_detection``: "cylinder" (default) fits cylinders to the
+                             whole cloud (``jaxslam.detect3d.fit_trunks_3d``: ground, height
+                             band, clusters, RANSAC cylinders, position at breast height);
+                             "slice" flattens a height band into a 2D scan of ``cloud_beams``
+                             azimuth bins (nearest return per bin, the planar counterpart of
+                             ``jaxslam.detect.clip_points_by_height``) detected like a
+                             LaserScan; or a ``cloud_detector`` callable. The flattened scan
+                             is stored as ``scan_ranges`` either way.
   nav_msgs/Odometry          planar poses (x, y, yaw from the quaternion) linearly interpolated
   (or PoseStamped, Pose-     onto the scan stamps; the moves between consecutive scan poses are
   WithCovarianceStamped,     the log's odometry controls (rot1, trans, rot2). With
@@ -60,6 +64,9 @@ _POINT_FIELD_FLOATS = {7: "f4", 8: "f8"}
 _POINT_FIELD_NAMES = {1: "INT8", 2: "UINT8", 3: "INT16", 4: "UINT16", 5: "INT32", 6: "UINT32",
                       7: "FLOAT32", 8: "FLOAT64"}
 _DETECT_CHUNK = 128  # scans per batched detection call (padded): one compile per beam count
+_CLOUD_CHUNK = 8  # clouds per batched cylinder-detection call (padded with empty clouds)
+_MIN_CLOUD_SLOTS = 1024  # clouds are padded to a power of two points, at least this many
+CLOUD_DETECTIONS = ("cylinder", "slice")
 
 
 class RosbagError(LogFormatError):
@@ -530,6 +537,93 @@ def _pad_detections(detections: list, max_obs: int | None):
     return z_all, valid_all, radius_all
 
 
+class CloudTrunks(NamedTuple):
+    """Trunks of one cloud (NumPy): z (K, 2) horizontal range [m] and bearing [rad] of the
+    breast-height point, valid (K,) bool, radius (K,) = DBH / 2 [m]."""
+
+    z: np.ndarray
+    valid: np.ndarray
+    radius: np.ndarray
+
+
+def cloud_slots(num_points: int) -> int:
+    """Padded point count of a cloud: the next power of two >= max(num_points, 1024), so a
+    bag compiles the cylinder detector once per size bucket, not per cloud."""
+    return max(_MIN_CLOUD_SLOTS, 1 << max(int(num_points) - 1, 0).bit_length())
+
+
+def detect_trunks_3d_batched(clouds, indices, max_obs: int = 16, **settings) -> list:
+    """``jaxslam.detect3d.fit_trunks_3d`` on each cloud: list of (N_i, 3) points -> list of
+    ``CloudTrunks``.
+
+    Clouds go through one jitted ``vmap`` per chunk of ``_CLOUD_CHUNK`` (the last one padded
+    with empty clouds), in float32, each padded to ``cloud_slots`` of the chunk's largest cloud
+    (``valid = False``). Cloud i's RANSAC key is ``fold_in(PRNGKey(0), indices[i])`` (its
+    message index), so a cloud's trunks do not depend on its chunk. ``settings`` are
+    ``fit_trunks_3d`` keywords.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    detect = _batched_detector_3d(int(max_obs), tuple(sorted(settings.items())))
+    out = []
+    for start in range(0, len(clouds), _CLOUD_CHUNK):
+        part = [np.asarray(c, np.float64).reshape(-1, 3) for c in
+                clouds[start:start + _CLOUD_CHUNK]]
+        slots = cloud_slots(max(len(c) for c in part))
+        points = np.zeros((_CLOUD_CHUNK, slots, 3), np.float32)
+        valid = np.zeros((_CLOUD_CHUNK, slots), bool)
+        for i, c in enumerate(part):
+            points[i, :len(c)], valid[i, :len(c)] = c, True
+        index = np.zeros(_CLOUD_CHUNK, np.int64)
+        index[:len(part)] = indices[start:start + len(part)]
+        keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(0), i))(
+            jnp.asarray(index, jnp.uint32))
+        found = detect(jnp.asarray(points), jnp.asarray(valid), keys)
+        z, ok, radius = (np.asarray(found.z, np.float64), np.asarray(found.valid, bool),
+                         np.asarray(found.radius, np.float64))
+        out += [CloudTrunks(z[i], ok[i], radius[i]) for i in range(len(part))]
+    return out
+
+
+_DETECTORS_3D: dict = {}
+
+
+def _batched_detector_3d(max_obs: int, settings: tuple):
+    """A jitted ``vmap`` of ``fit_trunks_3d(...).observations`` over clouds, cached per
+    (max_obs, settings)."""
+    key = (max_obs, settings)
+    if key not in _DETECTORS_3D:
+        import jax
+
+        from jaxslam.detect3d import fit_trunks_3d
+
+        options = dict(settings)
+        _DETECTORS_3D[key] = jax.jit(jax.vmap(
+            lambda points, valid, k: fit_trunks_3d(points, valid, key=k, max_obs=max_obs,
+                                                   **options).observations))
+    return _DETECTORS_3D[key]
+
+
+def _detector_keywords(detector: dict | None, cloud: bool, cloud_detection: str) -> dict:
+    """``detector`` checked against the keywords of the detector that will use it:
+    ``fit_trunks_3d`` for clouds with ``cloud_detection="cylinder"``, else ``detect_trunks``."""
+    import inspect
+
+    if cloud and cloud_detection == "cylinder":
+        from jaxslam.detect3d import fit_trunks_3d as function
+        name, skip = "jaxslam.detect3d.fit_trunks_3d", {"points", "valid", "key", "max_obs"}
+    else:
+        from jaxslam.detect import detect_trunks as function
+        name, skip = "jaxslam.detect.detect_trunks", {"ranges", "angles", "key", "max_obs"}
+    allowed = set(inspect.signature(function).parameters) - skip
+    unknown = sorted(set(detector or {}) - allowed)
+    if unknown:
+        raise ValueError(f"detector has unknown keyword(s) {unknown}; expected keywords of "
+                         f"{name}: {sorted(allowed)} (max_obs is its own argument)")
+    return dict(detector or {})
+
+
 # ----------------------------------------------------------------------------------------------
 # Reading the sensor topic
 
@@ -567,11 +661,21 @@ def _read_scans(bag: _Bag, topic: str, time_source: str) -> SensorTrack:
 
 
 def _read_clouds(bag: _Bag, topic: str, time_source: str, num_beams: int, z_band,
-                 cloud_detector) -> SensorTrack:
-    """Every PointCloud2 of ``topic`` flattened (``flatten_cloud``) and, with a
-    ``cloud_detector``, its detections. Each cloud is reduced as it is read (bags of clouds
-    are large)."""
-    stamps, indices, rows, detections = [], [], [], []
+                 cloud_detector, cloud_detection: str = "slice", max_obs: int = 16,
+                 settings: dict | None = None) -> SensorTrack:
+    """Every PointCloud2 of ``topic`` flattened (``flatten_cloud``) and its detections: the
+    ``cloud_detector``'s, else with ``cloud_detection="cylinder"`` ``fit_trunks_3d``'s
+    (``settings``), else none (the flattened scans are detected later). Clouds are reduced
+    as they are read, ``_CLOUD_CHUNK`` at a time (bags of clouds are large)."""
+    stamps, indices, rows, detections, pending, pending_index = [], [], [], [], [], []
+    cylinder = cloud_detector is None and cloud_detection == "cylinder"
+
+    def flush():
+        detections.extend(detect_trunks_3d_batched(pending, pending_index, max_obs,
+                                                   **(settings or {})))
+        pending.clear()
+        pending_index.clear()
+
     for index, bag_ns, message in bag.messages(topic):
         try:
             points = cloud_points(message)
@@ -582,9 +686,17 @@ def _read_clouds(bag: _Bag, topic: str, time_source: str, num_beams: int, z_band
         rows.append(flatten_cloud(points, num_beams, z_band[0], z_band[1]))
         if cloud_detector is not None:
             detections.append(cloud_detector(points))
+        elif cylinder:
+            pending.append(points)
+            pending_index.append(index)
+            if len(pending) == _CLOUD_CHUNK:
+                flush()
+    if pending:
+        flush()
+    has = cloud_detector is not None or cylinder
     return SensorTrack(np.asarray(stamps, np.int64), np.asarray(indices, np.int64),
                        np.stack(rows), cloud_scan_angles(num_beams),
-                       detections if cloud_detector is not None else None)
+                       detections if has else None)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -643,22 +755,16 @@ def _observations(track: SensorTrack, keep, max_obs: int, detector: dict | None)
     """(z, valid, radius) of the kept scans: the cloud_detector's, else detect_trunks'."""
     if track.detections is not None:
         return _pad_detections([d for d, k in zip(track.detections, keep) if k], max_obs)
-    import inspect
-
-    from jaxslam.detect import detect_trunks
-
-    allowed = set(inspect.signature(detect_trunks).parameters) - {"ranges", "angles", "key",
-                                                                  "max_obs"}
-    unknown = sorted(set(detector or {}) - allowed)
-    if unknown:
-        raise ValueError(f"detector has unknown keyword(s) {unknown}; expected keywords of "
-                         f"jaxslam.detect.detect_trunks: {sorted(allowed)} (max_obs is its "
-                         "own argument)")
     return detect_trunks_batched(track.ranges[keep], track.angles, max_obs,
-                                 **dict(detector or {}))
+                                 **_detector_keywords(detector, False, "slice"))
 
 
-def _check_options(time_source, odom_source, sensor_pose, cloud_beams, cloud_z_band, max_obs):
+def _check_options(time_source, odom_source, sensor_pose, cloud_beams, cloud_z_band, max_obs,
+                   cloud_detection="cylinder"):
+    if cloud_detection not in CLOUD_DETECTIONS:
+        raise ValueError(f"cloud_detection={cloud_detection!r}; expected 'cylinder' (3D "
+                         "cylinder fits, jaxslam.detect3d) or 'slice' (a flattened height band "
+                         "and 2D circle fits)")
     if time_source not in ("header", "bag"):
         raise ValueError(f"time_source={time_source!r}; expected 'header' (message stamps) or "
                          "'bag' (the times the recorder received the messages)")
@@ -679,7 +785,8 @@ def _check_options(time_source, odom_source, sensor_pose, cloud_beams, cloud_z_b
 def load_rosbag(path, scan_topic: str | None = None, cloud_topic: str | None = None,
                 odom_topic: str | None = None, truth_topic: str | None = None, *,
                 max_obs: int = 16, detector: dict | None = None,
-                cloud_detector: Callable | None = None, cloud_beams: int = 720,
+                cloud_detector: Callable | None = None, cloud_detection: str = "cylinder",
+                cloud_beams: int = 720,
                 cloud_z_band: tuple[float, float] = (-0.5, 0.5),
                 sensor_pose=(0.0, 0.0, 0.0), odom_source: str = "pose",
                 tf_frames: tuple[str, str] = ("odom", "base_link"),
@@ -699,12 +806,19 @@ def load_rosbag(path, scan_topic: str | None = None, cloud_topic: str | None = N
       truth_topic: optional ground truth of the same types (TF: ``truth_tf_frames``); none by
         default. The log then starts at the true pose, so estimate and truth share a frame.
       max_obs: K, detected trunks kept per scan (the nearest).
-      detector: ``jaxslam.detect.detect_trunks`` keywords (method, max_range, min_points, ...)
-        overriding its defaults.
+      detector: keywords overriding the defaults of the detector in use:
+        ``jaxslam.detect.detect_trunks`` (method, max_range, min_points, ...) for LaserScans
+        and ``cloud_detection="slice"``, ``jaxslam.detect3d.fit_trunks_3d`` (max_range,
+        band_min, max_lean, ...) for ``cloud_detection="cylinder"``.
       cloud_detector: callable(points (N, 3) float64 [m], cloud frame) -> an object with
         ``z`` (K, 2) (range, bearing), ``valid`` (K,) and optionally ``radius`` (K,), such as
-        an ``Observations``: replaces the flatten-and-detect path for PointCloud2 topics
-        (the hook for a 3D trunk detector). K may vary; rows are padded to ``max_obs``.
+        an ``Observations``: replaces ``cloud_detection`` for PointCloud2 topics. K may vary;
+        rows are padded to ``max_obs``.
+      cloud_detection: how PointCloud2 trunks are found: "cylinder" (default: 3D cylinder
+        fits per cloud, ``jaxslam.detect3d``; right for leaning trunks and sloped ground, it
+        needs a cloud frame with z up and the ground in view) or "slice" (``flatten_cloud``
+        of ``cloud_z_band``, then ``detect_trunks``: cheaper, and for sparse clouds of a few
+        layers, where a trunk gets too few points for a cylinder).
       cloud_beams / cloud_z_band: azimuth bins and (z_min, z_max) [m] band (cloud frame) of
         ``flatten_cloud``.
       sensor_pose: (x [m], y [m], yaw [rad]) of the lidar on the robot base (the odometry's
@@ -728,11 +842,13 @@ def load_rosbag(path, scan_topic: str | None = None, cloud_topic: str | None = N
         order or jumping stamp, scans outside the odometry's time span, a bad PointCloud2.
       ValueError: an option out of range.
     """
-    _check_options(time_source, odom_source, sensor_pose, cloud_beams, cloud_z_band, max_obs)
+    _check_options(time_source, odom_source, sensor_pose, cloud_beams, cloud_z_band, max_obs,
+                   cloud_detection)
     bag = _Bag(resolve_bag_path(path))
     try:
         return _load(bag, scan_topic, cloud_topic, odom_topic, truth_topic, max_obs=max_obs,
-                     detector=detector, cloud_detector=cloud_detector, cloud_beams=cloud_beams,
+                     detector=detector, cloud_detector=cloud_detector,
+                     cloud_detection=cloud_detection, cloud_beams=cloud_beams,
                      cloud_z_band=cloud_z_band, sensor_pose=sensor_pose,
                      odom_source=odom_source, tf_frames=tf_frames,
                      truth_tf_frames=truth_tf_frames, time_source=time_source,
@@ -772,8 +888,8 @@ def _odometry_topic(bag: _Bag, odom_topic) -> str:
 
 
 def _load(bag: _Bag, scan_topic, cloud_topic, odom_topic, truth_topic, *, max_obs, detector,
-          cloud_detector, cloud_beams, cloud_z_band, sensor_pose, odom_source, tf_frames,
-          truth_tf_frames, time_source, max_gap, min_translation, keep_scans,
+          cloud_detector, cloud_detection, cloud_beams, cloud_z_band, sensor_pose, odom_source,
+          tf_frames, truth_tf_frames, time_source, max_gap, min_translation, keep_scans,
           progress) -> RobotLog:
     """``load_rosbag`` on an open bag."""
     source = str(bag.path)
@@ -788,9 +904,10 @@ def _load(bag: _Bag, scan_topic, cloud_topic, odom_topic, truth_topic, *, max_ob
         progress("reading " + ", ".join(f"{what} {name!r} ({bag.topics[name][0]}, "
                                         f"{bag.topics[name][1]} messages)"
                                         for what, name in used))
+    settings = _detector_keywords(detector, kind == "cloud", cloud_detection)
     track = (_read_scans(bag, sensor, time_source) if kind == "scan" else
              _read_clouds(bag, sensor, time_source, int(cloud_beams), cloud_z_band,
-                          cloud_detector))
+                          cloud_detector, cloud_detection, int(max_obs), settings))
     check_stamps(source, sensor, track.time_ns, track.index, max_gap)
     odom = read_pose_track(bag, odometry, time_source, tf_frames)
     check_stamps(source, odometry, odom.time_ns, odom.index, max_gap)

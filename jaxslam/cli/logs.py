@@ -1,0 +1,281 @@
+"""Robot logs on the command line: ``run --data`` (filter a log, optionally calibrate and
+smooth), ``calibrate`` and ``convert`` (a ROS bag into a jaxslam .npz log), and the ROS bag
+options they share (``_TOPIC_OPTIONS``, ``_add_topic_options``).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import pathlib
+
+from jaxslam.cli import common
+from jaxslam.cli.common import UsageError, _load_config, _print_metrics
+
+
+_TOPIC_OPTIONS = (("--scan-topic", "scan_topic"), ("--cloud-topic", "cloud_topic"),
+                  ("--odom-topic", "odom_topic"), ("--truth-topic", "truth_topic"),
+                  ("--time-source", "time_source"), ("--cloud-detection", "cloud_detection"))
+
+
+def _topic_options_given(args) -> list[str]:
+    """The bag options (``_TOPIC_OPTIONS``) set on the command line, as flags."""
+    return [flag for flag, name in _TOPIC_OPTIONS if getattr(args, name, None) is not None]
+
+
+def _add_topic_options(parser: argparse.ArgumentParser, prefix: str = "") -> None:
+    """The ROS bag options: --scan-topic, --cloud-topic, --odom-topic, --truth-topic,
+    --time-source, --cloud-detection (``jaxslam.datasets.load_rosbag``)."""
+    parser.add_argument("--scan-topic", metavar="TOPIC",
+                        help=f"{prefix}the sensor_msgs/LaserScan topic (default: the bag's only "
+                             "LaserScan topic)")
+    parser.add_argument("--cloud-topic", metavar="TOPIC",
+                        help=f"{prefix}a sensor_msgs/PointCloud2 topic instead (see "
+                             "--cloud-detection) (default: the only PointCloud2 topic when "
+                             "there is no "
+                             "LaserScan)")
+    parser.add_argument("--odom-topic", metavar="TOPIC",
+                        help=f"{prefix}the nav_msgs/Odometry (or PoseStamped, TF odom -> "
+                             "base_link) topic (default: the bag's only Odometry topic)")
+    parser.add_argument("--truth-topic", metavar="TOPIC",
+                        help=f"{prefix}a ground-truth pose topic (Odometry or PoseStamped) for "
+                             "truth_pose (default: none: no truth)")
+    parser.add_argument("--time-source", choices=["header", "bag"],
+                        help=f"{prefix}time messages by their header stamps or by the times "
+                             "the recorder received them (default: header)")
+    parser.add_argument("--cloud-detection", choices=["cylinder", "slice"],
+                        help=f"{prefix}trunks in a PointCloud2: 3D cylinder fits, or a "
+                             "flattened height band with circle fits (default: cylinder)")
+
+
+def _load_robot_log(path, args=None):
+    """The ``RobotLog`` at ``path``: a ROS bag (``jaxslam.datasets.rosbag.is_rosbag_path``:
+    a .bag/.db3/.mcap name or a folder with metadata.yaml), read with the bag options of
+    ``args``, else a jaxslam .npz log. Any problem with the file becomes a one-line
+    ``UsageError``."""
+    from jaxslam.datasets.log_format import LogFormatError, load_log
+    from jaxslam.datasets.rosbag import is_rosbag_path, load_rosbag
+
+    try:
+        if is_rosbag_path(path):
+            options = {name: getattr(args, name) for _, name in _TOPIC_OPTIONS
+                       if getattr(args, name, None) is not None}
+            log = load_rosbag(path, progress=print, **options)
+        else:
+            given = _topic_options_given(args)
+            if given:
+                raise UsageError(f"{given[0]} applies to a ROS bag (a .bag file or a ROS 2 "
+                                 f"bag folder); {path} is read as a jaxslam .npz log")
+            log = load_log(path)
+        log.observations()
+    except LogFormatError as error:
+        hint = (" (nor a ROS 2 bag folder: it holds no metadata.yaml; docs/rosbag.md)"
+                if os.path.isdir(path) else "")
+        raise UsageError(f"{error}{hint}") from error
+    return log
+
+
+def _print_calibration(info) -> None:
+    print(f"calibration: {info.verdict} ({info.iterations} iterations)")
+    for name, value in info.values.items():
+        text = (f"{value:.6g}" if isinstance(value, float)
+                else "(" + ", ".join(f"{v:.6g}" for v in value) + ")")
+        print(f"  {name:<24} {text}")
+
+
+def _print_warnings(lines) -> None:
+    for line in lines:
+        print(f"WARNING: {line}")
+
+
+def _run_log(args) -> int:
+    """Filter a jaxslam .npz robot log; print the metrics its ground truth allows; write
+    example_run.npz (with the log's timestamps), metrics.json, map.png and, when the log has
+    a truth_pose, error_vs_time.png."""
+    import json
+
+    import numpy as np
+
+    log = _load_robot_log(args.data, args)
+    out = pathlib.Path(args.out) if args.out else pathlib.Path("results") / "run"
+    out.mkdir(parents=True, exist_ok=True)
+    example, run = _filter_log(args, log)
+    from jaxslam import pipeline
+
+    if run.calibration is not None:
+        _print_calibration(run.calibration)
+        saved = pipeline.save_params(out / "calibrated_params.toml", run.params,
+                                     comment=f"calibrated from {args.data} by jaxslam run "
+                                     f"({run.calibration.verdict})")
+        print(f"wrote {saved} (reuse it with --params {saved})")
+    _print_metrics(run.metrics)
+    _print_warnings(run.warnings)
+    if log.truth_pose is None:
+        print("(the log has no truth_pose: no trajectory error to report, no error_vs_time.png)")
+    np.savez(out / "example_run.npz", allow_pickle=False, **example)
+    (out / "metrics.json").write_text(json.dumps(
+        {"metrics": run.metrics, "warnings": list(run.warnings)}, indent=2) + "\n")
+    from jaxslam import plots
+
+    print(f"wrote {out / 'example_run.npz'}")
+    print(f"wrote {out / 'metrics.json'}")
+    print(f"wrote {plots.plot_map(example, out / 'map.png', title=f'Map: {args.data}')}")
+    error_plot = _plot_log_errors(example, out / "error_vs_time.png", args.data)
+    if error_plot is not None:
+        print(f"wrote {error_plot}")
+    return 0
+
+
+def log_error_traces(example: dict):
+    """``plots.Traces`` of a log run's position error per step [m] against its truth_pose:
+    condition 0 the filter's estimate, condition 1 the smoothed path when the run has one.
+    None when the example holds no truth (truth_pose with no rows)."""
+    import numpy as np
+
+    from jaxslam import plots
+
+    truth = np.asarray(example["truth_pose"], np.float64)
+    if len(truth) == 0:
+        return None
+    paths = [example["mean_pose"]]
+    if "smoothed_pose" in example:
+        paths.append(example["smoothed_pose"])
+    errors = [np.hypot(*(np.asarray(path, np.float64)[:, :2] - truth[:, :2]).T)
+              for path in paths]
+    return plots.Traces(run_id=np.zeros(len(errors), np.int64),
+                        condition=np.arange(len(errors), dtype=np.int64),
+                        pose_error=np.stack(errors))
+
+
+def _plot_log_errors(example: dict, out_png: pathlib.Path, name) -> str | None:
+    """error_vs_time.png of a log run (``log_error_traces``); None without truth."""
+    from jaxslam import plots
+
+    traces = log_error_traces(example)
+    if traces is None:
+        return None
+    labels = {0: "filter estimate (weighted mean)", 1: "smoothed path"}
+    return plots.plot_error_vs_time(traces, out_png, labels,
+                                    title=f"Position error over time: {name}")
+
+
+def _log_settings(args, log):
+    """(study config, FilterConfig sized to the log, Params, calibrate?) for a log run.
+
+    The Params are a ``--params`` file's (used as they are), the calibration's start
+    (``starting_params`` with the config's [params]), or the config's values
+    (``--no-calibrate``).
+    """
+    import dataclasses
+
+    from jaxslam import pipeline
+    from jaxslam.self_calibration import starting_params
+    from jaxslam.types import default_params
+
+    study = _load_config(args.config, args.set)
+    obs = log.observations()
+    filter_config = dataclasses.replace(study.filter, max_obs=int(obs.z.shape[1]),
+                                        motion_model=log.motion_model)
+    params_file = getattr(args, "params", None)
+    calibrate = not getattr(args, "no_calibrate", False) and params_file is None
+    if params_file is not None:
+        try:
+            params = pipeline.load_params(params_file, filter_config)
+        except ValueError as error:
+            raise UsageError(str(error)) from error
+    elif calibrate:
+        params = starting_params(filter_config, **dict(study.params))
+    else:
+        params = default_params(filter_config, **dict(study.params))
+    return study, filter_config, params, calibrate
+
+
+def _filter_log(args, log):
+    """Run the pipeline over a log. Returns (example_run arrays, ``pipeline.LogRun``).
+
+    The example holds the log's ``time`` (T,) [s]: row t of mean_pose (and of truth_pose and
+    smoothed_pose) is the pose at time[t], after the log's control row t.
+    """
+    import jax
+    import numpy as np
+
+    from jaxslam import pipeline
+
+    common.enable_compilation_cache()
+    smooth = bool(getattr(args, "smooth", False))
+    visit_gap = getattr(args, "visit_gap", None)
+    if visit_gap is not None and not smooth:
+        raise UsageError(f"--visit-gap {visit_gap} needs --smooth (it splits the smoothed "
+                         "history's landmarks into visits)")
+    if visit_gap is not None and visit_gap < 1:
+        raise UsageError(f"--visit-gap {visit_gap}: the gap must be at least 1 step")
+    study, filter_config, params, calibrate = _log_settings(args, log)
+    run = pipeline.filter_log(log, filter_config, params, jax.random.PRNGKey(args.seed),
+                              calibrate=calibrate, smooth=smooth, visit_gap=visit_gap,
+                              map_match_threshold=study.map_match_threshold, progress=print)
+    est = run.estimate
+    truth = np.zeros((0, 3)) if log.truth_pose is None else np.asarray(log.truth_pose)
+    trees = np.zeros((0, 2)) if log.truth_landmarks is None else np.asarray(log.truth_landmarks)
+    example = dict(truth_pose=truth, mean_pose=run.mean_pose,
+                   landmark_mean=np.asarray(est.landmark_mean),
+                   landmark_cov=np.asarray(est.landmark_cov), active=np.asarray(est.active),
+                   tree_centres=trees, tree_radii=np.zeros(len(trees)),  # radii unknown
+                   time=np.asarray(log.time, np.float64))
+    if run.smoothed_pose is not None:
+        example["smoothed_pose"] = run.smoothed_pose
+    return example, run
+
+
+def cmd_calibrate(args) -> int:
+    """Calibrate the filter's settings from a log alone and write them as TOML."""
+    import jax
+
+    from jaxslam import pipeline
+    from jaxslam.self_calibration import calibrate_params
+
+    common.enable_compilation_cache()
+    log = _load_robot_log(args.data)
+    _, filter_config, params, _ = _log_settings(args, log)
+    params, info = calibrate_params(
+        filter_config, jax.random.PRNGKey(args.seed), log.controls.astype("float32"),
+        log.observations(), log.initial_pose, params, progress=print)
+    _print_calibration(info)
+    _print_warnings(info.warnings)
+    saved = pipeline.save_params(args.out, params, comment=f"calibrated from {args.data} by "
+                                 f"jaxslam calibrate ({info.verdict})")
+    print(f"wrote {saved} (use it with: jaxslam run --data {args.data} --params {saved})")
+    return 0
+
+
+def cmd_convert(args) -> int:
+    """Convert a ROS bag into a jaxslam .npz log (trunks detected per scan), check that the
+    written file loads back, and print what it holds."""
+    import numpy as np
+
+    from jaxslam.datasets.log_format import LogFormatError, load_log, save_log
+    from jaxslam.datasets.rosbag import resolve_bag_path
+
+    try:
+        resolve_bag_path(args.bag)
+    except LogFormatError as error:
+        raise UsageError(str(error)) from error
+    log = _load_robot_log(args.bag, args)
+    out = pathlib.Path(args.out)
+    if out.suffix != ".npz":  # numpy.savez would add it anyway; say the real name
+        out = out.with_name(out.name + ".npz")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_log(out, log, compress=args.compress)
+    try:
+        back = load_log(out)
+    except LogFormatError as error:  # a bug, or a disk problem: say so plainly
+        raise UsageError(f"{out} was written but does not load back: {error}") from error
+    if back.num_steps != log.num_steps or not np.array_equal(back.obs_valid, log.obs_valid):
+        raise UsageError(f"{out} was written but reads back differently ({back.num_steps} "
+                         f"steps, expected {log.num_steps}); check the disk and rerun")
+    valid = int(back.obs_valid.sum())
+    span = float(back.time[-1] - back.time[0])
+    path_length = float(np.sum(back.controls[:, 1]))
+    print(f"wrote {out}: {back.num_steps} steps over {span:.1f} s, {valid} trunk detections "
+          f"({valid / back.num_steps:.1f} per scan), odometry path {path_length:.1f} m, "
+          + ("with" if back.truth_pose is not None else "without") + " truth_pose")
+    print(f"run it with: jaxslam run --data {out}")
+    return 0

@@ -1,0 +1,87 @@
+"""The settings of the simulated world of a study: the [scenario] section of a study config.
+
+``scenario_config`` is this simulator's ``settings`` function (``jaxslam.simulators``): it turns
+the plain mapping of the TOML section into a checked ``ScenarioConfig``; every error names the
+key and the allowed values. Only the standard library and ``jaxslam.config_rules`` are imported
+here, so that reading a study config needs neither JAX's simulator code nor MuJoCo.
+"""
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+
+from jaxslam.config_rules import (Rule, check_choices, check_fields, check_keys,
+                                  normalise)
+
+SECTION = "scenario"
+SCENARIO_RULES = {
+    "forest": Rule("str"),
+    "num_trees": Rule("int", 1, True),
+    "size": Rule("float", 0.0, False),
+    "path": Rule("str"),
+    "num_steps": Rule("int", 1, True),
+    "step_length": Rule("float", 0.0, False),
+    "max_range": Rule("float", 0.0, False),
+    "observation_source": Rule("str"),
+    "detection": Rule("str"),
+    "odometry_noise_scale": Rule("float", 0.0, True),
+    "world": Rule("str"),
+}
+SCENARIO_CHOICES = {"forest": ("random", "plantation"), "path": ("loop", "lawnmower", "random"),
+                    "observation_source": ("analytic", "lidar"),
+                    "detection": ("centroid", "kasa", "geometric", "ransac"),
+                    "world": ("shared", "per_run")}
+
+
+@dataclasses.dataclass(frozen=True)
+class ScenarioConfig:
+    """The simulated world of every run (see ``sims.scenario`` and ``sims.batch``).
+
+    forest: "random" or "plantation"; num_trees; size: square side [m]; path: "loop",
+    "lawnmower" or "random"; num_steps: T; step_length [m]; max_range [m] of the sensor;
+    observation_source: "analytic" (range-bearing to trunk centres with Table 2 noise) or
+    "lidar" (MJX scans + trunk detection); detection: centroid | kasa | geometric | ransac;
+    odometry_noise_scale: multiplies the Table 1 noise of the simulated odometry.
+    world: "shared" (every run follows one path through one forest, drawn from the seed:
+    runs differ in noise only, for paired comparisons) or "per_run" (run i draws its own
+    forest and path from its run key: the spread over worlds is part of every metric;
+    analytic observations only).
+    """
+
+    forest: str = "random"
+    num_trees: int = 80
+    size: float = 60.0
+    path: str = "loop"
+    num_steps: int = 200
+    step_length: float = 0.5
+    max_range: float = 20.0
+    observation_source: str = "analytic"
+    detection: str = "kasa"
+    odometry_noise_scale: float = 1.0
+    world: str = "shared"
+
+    def __post_init__(self):
+        check_fields(SECTION, self, SCENARIO_RULES)
+        check_choices(SECTION, dataclasses.asdict(self), SCENARIO_CHOICES)
+        if self.world == "per_run" and self.observation_source != "analytic":
+            raise ValueError("scenario.world='per_run' needs scenario.observation_source="
+                             "'analytic' (lidar scans are cast in one MJX model of a shared "
+                             "forest); use world='shared' for lidar studies")
+
+
+def scenario_config(section) -> ScenarioConfig:
+    """The ``ScenarioConfig`` of a [scenario] section (a mapping key -> TOML value; a
+    ``ScenarioConfig`` passes through as it is).
+
+    Keys and choices are checked first, then every value's type and range; a float given as
+    an integer is stored as a float, so ``size = 30`` and ``size = 30.0`` are one study.
+    """
+    if isinstance(section, ScenarioConfig):
+        return section
+    if not isinstance(section, Mapping):
+        raise ValueError(f"study scenario={section!r}; expected a ScenarioConfig or a "
+                         "[scenario] section of key = value lines")
+    section = dict(section)
+    check_keys(SECTION, section, ScenarioConfig)
+    check_choices(SECTION, section, SCENARIO_CHOICES)
+    return ScenarioConfig(**normalise(SECTION, section, SCENARIO_RULES))
