@@ -1,8 +1,10 @@
 """The mixture proposal in the divergence regime (Geiser et al. 2023, section 5.2; issue 5).
 
 Accurate lidar (Table 2), odometry noise 5x Table 1, few particles. For each particle count:
-the motion proposal, the mixture with fixed phi in {0, 0.1, 0.3, 1}, and the adaptive
-phi. Divergence = final pose error over 1 m.
+the seed paper's motion proposal (a Gaussian motion prior, no bursts, the first pose
+sampled), the mixture with fixed phi in {0, 0.1, 0.3, 1} and the adaptive phi (both with
+the default flags and bursts), and the default proposal (``FilterConfig()``: observation).
+Divergence = final pose error over 1 m.
 
 Run:  python experiments/mixture_proposal.py [--runs 1000] [--particles 10 30]
 """
@@ -19,7 +21,10 @@ def pipelines_for(particles, args):
     for count in particles:
         p = f"filter.num_particles={count}"
         out[f"P{count}_motion"] = load_pipeline(
-            "mixture", args, [p, "filter.proposal='motion'", "sweep={}"])
+            "mixture", args, [p, "filter.proposal='motion'", "filter.anchor_empty_map=false",
+                              "params.motion_outlier_probability=0.0", "sweep={}"])
+        out[f"P{count}_default"] = load_pipeline(
+            "mixture", args, [p, "filter.proposal='observation'", "sweep={}"])
         out[f"P{count}_mixture"] = load_pipeline("mixture", args, [p])
         out[f"P{count}_adaptive"] = load_pipeline(
             "mixture", args, [p, "filter.mixture_mode='adaptive'", "sweep={}"])

@@ -115,7 +115,7 @@ def main(argv=None):
     parser.add_argument("--particles", type=int, default=100)
     parser.add_argument("--odometry-scale", type=float, default=2.0)
     parser.add_argument("--sensor-scale", type=float, default=5.0)
-    parser.add_argument("--proposal", default="motion")
+    parser.add_argument("--proposal", default=FilterConfig().proposal)
     parser.add_argument("--wobble", type=float, default=0.3,
                         help="lateral wobble amplitude [m]; 0.3 turns up to ~0.15 rad a step, "
                         "0 is a smooth circle (0.025 rad a step)")

@@ -27,6 +27,8 @@ estimation use, with the particle filter as the E-step's data associator:
          * bursts: a two-scale mixture fitted to the whitened move residuals by EM
            (``fit_bursts``) sets ``motion_outlier_probability`` and ``motion_outlier_scale``
            when it beats one Gaussian by BIC (wheel slip, commanded-velocity odometry);
+           without that evidence the burst proposal keeps its default tail
+           (``defensive_bursts``);
          * tails: otherwise the std is widened, where needed, until 95 % of the group's residuals
            lie within its 95 % interval (``_tail_factor``; 1 for Gaussian errors). Real
            sensors are heavy-tailed, and a std fitted to the core alone makes the filter
@@ -204,9 +206,26 @@ def _tail_factor(errors, std, quantile: float = TAIL_QUANTILE) -> float:
     return max(1.0, float(np.quantile(ratio, quantile)) / CHI2_1DOF[quantile])
 
 
-def _motion_update(res: _Residuals, params: Params, scales: smoothing.NoiseScales):
+def defensive_bursts(config: FilterConfig) -> tuple[float, float]:
+    """(eps, kappa) kept when the log shows no bursts (``fit_bursts`` returns None).
+
+    With the two-piece burst proposal (``FilterConfig.burst_proposal``, observation or
+    mixture proposal) the default bursts stay: they are not a noise estimate but the tail
+    that lets a particle follow a turn far from the measured one (Eq. (1)'s std is evaluated
+    at the measured turn), which a log with few such turns cannot show. The motion proposal
+    samples bursts blindly, so for it they are off.
+    """
+    defaults = default_params(config)
+    if config.proposal != "motion" and config.burst_proposal:
+        return float(defaults.motion_outlier_probability), float(defaults.motion_outlier_scale)
+    return 0.0, float(defaults.motion_outlier_scale)
+
+
+def _motion_update(res: _Residuals, params: Params, scales: smoothing.NoiseScales,
+                   no_bursts: tuple[float, float] = (0.0, 8.0)):
     """(coefficients (3, 3) of rot1, trans, rot2, burst probability, burst scale), or None
-    when there are too few moves. Bursts (``fit_bursts``) or, without them, the tail factor."""
+    when there are too few moves. Bursts (``fit_bursts``) or, without them, the tail factor
+    and ``no_bursts`` (eps, kappa) (``defensive_bursts``)."""
     moving = np.all(np.isfinite(res.true_moves), axis=1)
     if int(moving.sum()) < MIN_MOVES:
         return None
@@ -236,7 +255,7 @@ def _motion_update(res: _Residuals, params: Params, scales: smoothing.NoiseScale
         eps, core, kappa = bursts
         rows = [r * core for r in rows]
     else:
-        eps, kappa = 0.0, float(params.motion_outlier_scale)
+        eps, kappa = no_bursts
         heading_tail = _tail_factor(heading_error, heading_std)
         rows = [rows[0] * np.sqrt(heading_tail),
                 rows[1] * np.sqrt(_tail_factor(errors[:, 1], std[1])),
@@ -705,7 +724,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                          float(params.min_translation))
         used = res.sightings[res.obs_landmark] >= MIN_SIGHTINGS
         update = {}
-        motion = _motion_update(res, params, smoothed.noise_scales)
+        motion = _motion_update(res, params, smoothed.noise_scales,
+                                defensive_bursts(config))
         if motion is not None:
             rows, eps, kappa = motion
             update.update(rot1_noise=rows[0], trans_noise=rows[1], rot2_noise=rows[2],

@@ -112,7 +112,16 @@ def true_moves(poses, min_translation: float = 0.01):
     return odometry_from_poses(poses[:-1], poses[1:], min_translation)
 
 
-def noisy_odometry(key, moves, params: Params):
-    """(T, 3) odometry readings: each true move (T, 3) perturbed per Geiser et al. 2023, Eq. (1)."""
+def noisy_odometry(key, moves, params: Params, bursts: bool = False):
+    """(T, 3) odometry readings: each true move (T, 3) perturbed per Geiser et al. 2023, Eq. (1).
+
+    The simulated robot's noise is Eq. (1)'s Gaussian: ``params``' bursts
+    (``motion_outlier_probability``) are the filter's prior, a tail it allows for, not a
+    property of this robot, and are ignored unless ``bursts`` (then drawn as
+    ``sample_odometry`` does). Wheel slip with its own structure: ``sims.robot``.
+    """
+    if not bursts:
+        params = params._replace(motion_outlier_probability=jnp.zeros_like(
+            jnp.asarray(params.motion_outlier_probability)))
     keys = jax.random.split(key, moves.shape[0])
     return jax.vmap(sample_odometry, in_axes=(0, 0, None))(keys, moves, params)

@@ -103,10 +103,12 @@ def _filter(config, params, seed=3, motion_scale=3.0):
 
 
 def test_phi_zero_mixture_is_the_motion_proposal():
-    base = dict(num_particles=16, max_landmarks=48, max_obs=8)
-    params = default_params(mixture_ratio=0.0)
-    motion_final, motion_trace = _filter(FilterConfig(**base), params)
-    for flags in (dict(), dict(associate_at_sample=True, match_pose_uncertainty=True)):
+    base = dict(num_particles=16, max_landmarks=48, max_obs=8, anchor_empty_map=False,
+                burst_proposal=False)
+    params = default_params(mixture_ratio=0.0, motion_outlier_probability=0.0)
+    motion_final, motion_trace = _filter(FilterConfig(proposal="motion", **base), params)
+    for flags in (dict(associate_at_sample=False, match_pose_uncertainty=False),
+                  dict(associate_at_sample=True, match_pose_uncertainty=True)):
         final, trace = _filter(FilterConfig(proposal="mixture", **base, **flags), params)
         # Same draws, same associations (each at its own pose), same weights: equal to
         # float32 rounding of the two code paths (the mixture re-predicts at the pose).
@@ -116,11 +118,12 @@ def test_phi_zero_mixture_is_the_motion_proposal():
                                       np.asarray(motion_trace.num_landmarks))
 
 
+@pytest.mark.slow  # 22 s: two more compiled filters
 def test_burst_proposal_without_bursts_is_the_one_gaussian_proposal():
     base = dict(num_particles=16, max_landmarks=48, max_obs=8, proposal="mixture",
                 match_pose_uncertainty=True)
-    params = default_params(mixture_ratio=0.5)  # eps = 0: the burst piece has no mass
-    _, plain = _filter(FilterConfig(**base), params)
+    params = default_params(mixture_ratio=0.5, motion_outlier_probability=0.0)  # no burst mass
+    _, plain = _filter(FilterConfig(burst_proposal=False, **base), params)
     _, pieces = _filter(FilterConfig(burst_proposal=True, **base), params)
     np.testing.assert_allclose(np.asarray(pieces.mean_pose), np.asarray(plain.mean_pose),
                                atol=1e-5)

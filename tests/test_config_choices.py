@@ -100,7 +100,9 @@ def test_association_window_rejects_negative():
 def test_best_particle_survives_resampling():
     """After a resampling step all weights are equal; info.best_particle still points to a
     copy of the particle that had the highest weight (here 0.6 of the mass: 3 of 5 copies)."""
-    config = jaxslam.FilterConfig(num_particles=5, max_landmarks=4, max_obs=2)
+    # Motion draws (not the empty-map anchor, which would give every particle the same pose).
+    config = jaxslam.FilterConfig(num_particles=5, max_landmarks=4, max_obs=2, proposal="motion",
+                                  anchor_empty_map=False)
     params = jaxslam.default_params(config, ess_threshold=1.0)  # always resample
     init, step = jaxslam.make_filter(config)
     state = init(jnp.zeros(3))

@@ -23,7 +23,10 @@ from jaxslam.types import FilterConfig, default_params, make_observations
 F32 = jnp.float32
 T = 8
 STILL = (2, 5)  # steps where the robot stands still; the dirty rows
-SMALL = FilterConfig(num_particles=4, max_landmarks=4, max_obs=3, boundary="loose")
+# The plain motion proposal; the other two configs switch on the flags they test.
+SMALL = FilterConfig(num_particles=4, max_landmarks=4, max_obs=3, boundary="loose",
+                     proposal="motion", match_pose_uncertainty=False, anchor_empty_map=False,
+                     associate_at_sample=False, burst_proposal=False)
 CONFIGS = {
     "motion-odometry": SMALL,
     # The two-piece burst proposal (bursts are on in PARAMS) with pose-uncertainty matching.

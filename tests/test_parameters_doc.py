@@ -25,14 +25,15 @@ DOC = pathlib.Path(__file__).resolve().parents[1] / "docs" / "parameters.md"
 
 # The documented defaults, pinned: the values of default_params() in the last commit before
 # the derived airlock default (git show HEAD:jaxslam/types.py, ``values`` of default_params,
-# airlock_sigmas = sqrt(gate 25)). They are the numbers docs/parameters.md states; a change
+# airlock_sigmas = sqrt(gate 25)), and the burst defaults
+# of the default observation proposal (eps 0.05, kappa 8, chosen in proposal_defaults). They are the numbers docs/parameters.md states; a change
 # here is a change of every result computed with the defaults.
 PINNED_DEFAULTS = dict(
     rot1_noise=(0.0, 0.06, 0.0002),
     trans_noise=(0.02, 0.006, 0.00003),
     rot2_noise=(0.0, 0.06, 0.0003),
-    motion_outlier_probability=0.0,
-    motion_outlier_scale=4.0,
+    motion_outlier_probability=0.05,
+    motion_outlier_scale=8.0,
     min_translation=0.01,
     wheelbase=2.83,
     encoder_offset=0.76,

@@ -78,7 +78,8 @@ def observations(offset=TRUE_OFFSET):
 
 @pytest.fixture(scope="module")
 def params():
-    return default_params(dtype=jnp.float64,
+    # One Gaussian motion prior (no bursts): the proposal under test is its FastSLAM 2.0 Gaussian.
+    return default_params(dtype=jnp.float64, motion_outlier_probability=0.0,
                           rot1_noise=(0.0, 0.0, SIGMA_MOVE[0]),
                           trans_noise=(0.0, 0.0, SIGMA_MOVE[1]),
                           rot2_noise=(0.0, 0.0, SIGMA_MOVE[2]),

@@ -31,7 +31,12 @@ PYTHON = sys.executable
 REPO = pathlib.Path(__file__).resolve().parent.parent
 TINY = ["num_runs=4", "filter.num_particles=8", "filter.max_landmarks=24", "filter.max_obs=8",
         "scenario.num_steps=20", "scenario.num_trees=15", "scenario.size=30.0",
-        "sweep.detection_probability=[0.8, 0.9]"]
+        "sweep.detection_probability=[0.8, 0.9]",
+        # The study machinery does not depend on the proposal: the seed paper's FastSLAM
+        # compiles fastest, and detection_probability (landmark existence) changes its maps
+        # within 20 steps (the default observation proposal deletes no landmark here).
+        "filter.proposal='motion'", "filter.anchor_empty_map=false",
+        "params.motion_outlier_probability=0.0"]
 
 
 def tiny_config(*overrides) -> studies.StudyConfig:
@@ -141,7 +146,7 @@ def test_overrides_and_round_trip():
     config = tiny_config("chunk_size=3", "params.association_gate=16.0", "seed=7")
     assert (config.num_runs, config.chunk_size, config.seed) == (4, 3, 7)
     assert config.filter.num_particles == 8 and config.scenario.size == 30.0
-    assert config.params == (("association_gate", 16.0),)
+    assert config.params == (("motion_outlier_probability", 0.0), ("association_gate", 16.0))
     assert config.conditions == [{"detection_probability": 0.8},
                                  {"detection_probability": 0.9}]
     assert studies.study_config_from_dict(studies.study_config_to_dict(config)) == config

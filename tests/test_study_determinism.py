@@ -117,6 +117,7 @@ def test_results_are_bit_identical_whatever_the_chunk_size(reference, tmp_path):
     assert len(set(studies._COMPILED) - programs_before) <= 1
 
 
+@pytest.mark.slow  # 31 s: a second program width; the default tier checks chunk sizes above
 def test_wider_groups_are_bit_identical_whatever_the_chunk_size(tmp_path):
     """run_width=3: a run sits at different positions of its group and next to different
     runs (or padding, or the other condition) from one chunk size to the next."""

@@ -99,6 +99,7 @@ MOTION_NOISE = dict(
 
 PARAM_DEFAULTS = dict(
     **MOTION_NOISE,
+    motion_outlier_probability=0.0,  # a Gaussian motion prior (see victoria_park_config)
     # Observation: trunk centres from 3-10 beams of a 0.5-degree laser.
     range_noise=(0.01, 0.5),
     bearing_noise=(0.0, 0.04),
@@ -443,6 +444,11 @@ def victoria_park_config(num_particles: int = 100, max_landmarks: int = 320,
     fields.setdefault("association_window", 48)
     fields.setdefault("proposal", "observation")
     fields.setdefault("match_pose_uncertainty", True)
+    # The settings its results were measured with, before the library's defaults gained
+    # these (first pose sampled, matched at x_hat only, one Gaussian, no bursts).
+    fields.setdefault("anchor_empty_map", False)
+    fields.setdefault("associate_at_sample", False)
+    fields.setdefault("burst_proposal", False)
     return FilterConfig(num_particles=num_particles, max_landmarks=max_landmarks,
                         max_obs=max_obs, motion_model="odometry", **fields)
 

@@ -1,0 +1,158 @@
+"""Divergence of the motion and the default proposal over turn rate, odometry noise and P.
+
+Each point of the grid (wobble amplitude: the turn per step; odometry noise x Table 1 of
+Geiser et al., ICAROB 2023; particle count P) runs R logs: ``--forests`` forests, each with
+its own wobbly loop logs (``experiments/self_calibration.py``: 40 trees, 12 m range, 250 steps
+of 0.5 m, a 5 mm / 0.5 mrad lidar, as in ``experiments/mixture_regime.py``), R / forests noise
+draws each. The filter is given the true noise. All runs of a point are one ``jax.vmap`` of
+``scan_filter`` (in chunks). Reported: the divergence rate (final position error > 1 m) with
+its 95 % Wilson interval, the median final error, the landmarks per tree seen, and the cost
+(run-steps per second of the batched filter after compilation; compile time apart).
+
+    python experiments/proposal_study.py --runs 1000 --forests 50 --out docs/results/proposal_study.md
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from experiments.mixture_regime import regime_params
+from experiments.self_calibration import MAX_RANGE, SIZE, wobbly_loop
+from jaxslam.filter import make_filter, scan_filter
+from jaxslam.types import FilterConfig
+from sims.forest import random_forest
+from sims.scenario import build_scenario
+
+PROPOSALS = {
+    # The seed paper's FastSLAM: motion proposal, Gaussian prior, first pose sampled.
+    "motion": (dict(proposal="motion", anchor_empty_map=False), 0.0),
+    # FilterConfig() as shipped (observation proposal with its flags and default bursts).
+    "default": ({}, None),
+}
+
+
+def wilson(k: int, n: int, z: float = 1.96):
+    """95 % Wilson score interval of a binomial rate k / n."""
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def make_logs(key, params, wobble: float, runs: int, forests: int):
+    """Stacked logs of ``runs`` runs: controls (R, T, 3), observations (R, T, K), truth
+    (R, T+1, 3), trees seen (R,)."""
+    path = wobbly_loop(amplitude=wobble)
+    dense = wobbly_loop(2000, amplitude=wobble)
+    per_forest = runs // forests
+    controls, obs, truth, seen = [], [], [], []
+    for f in range(forests):
+        key_forest, key_runs = jax.random.split(jax.random.fold_in(key, f))
+        forest = random_forest(key_forest, 40, (SIZE, SIZE), keep_clear=dense[:, :2])
+        scenario = build_scenario(key_runs, forest, path, per_forest, params=params, max_obs=12)
+        controls.append(np.asarray(scenario.controls))
+        obs.append(jax.tree.map(np.asarray, scenario.observations))
+        truth.append(np.broadcast_to(np.asarray(scenario.poses), (per_forest,) +
+                                     np.asarray(scenario.poses).shape[-2:]))
+        ids = np.asarray(scenario.observations.landmark_id)
+        valid = np.asarray(scenario.observations.valid)
+        seen += [len(np.unique(ids[r][valid[r]])) for r in range(per_forest)]
+    stack = lambda *xs: np.concatenate(xs)
+    return (np.concatenate(controls), jax.tree.map(stack, *obs), np.concatenate(truth),
+            np.asarray(seen))
+
+
+def run_point(config, params, key, controls, obs, truth, chunk: int):
+    """Final errors (R,), landmark counts (R,), compile [s] and run [s] of the vmapped filter."""
+    filt = make_filter(config)
+
+    def one(key, controls, obs, start):
+        state = filt.init(start, dtype=controls.dtype)
+        final, trace = scan_filter(config, key, state, params, controls, obs)
+        w = jax.nn.softmax(final.log_weight)
+        count = jnp.sum(w * jnp.sum(final.particles.active, -1))
+        return trace.mean_pose[-1], count
+
+    batched = jax.jit(jax.vmap(one))
+    runs = controls.shape[0]
+    keys = jax.random.split(key, runs)
+    tick = time.perf_counter()
+    sl = slice(0, chunk)
+    compiled = batched.lower(keys[sl], controls[sl], jax.tree.map(lambda a: a[sl], obs),
+                             truth[sl, 0]).compile()
+    compile_s = time.perf_counter() - tick
+    finals, counts, run_s = [], [], 0.0
+    for lo in range(0, runs, chunk):
+        sl = slice(lo, lo + chunk)
+        tick = time.perf_counter()
+        final, count = compiled(keys[sl], controls[sl], jax.tree.map(lambda a: a[sl], obs),
+                                truth[sl, 0])
+        jax.block_until_ready(final)
+        run_s += time.perf_counter() - tick
+        finals.append(np.asarray(final))
+        counts.append(np.asarray(count))
+    final = np.concatenate(finals)
+    error = np.hypot(*(final[:, :2] - truth[:, -1, :2]).T)
+    return error, np.concatenate(counts), compile_s, run_s
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=1000)
+    parser.add_argument("--forests", type=int, default=50)
+    parser.add_argument("--chunk", type=int, default=250)
+    parser.add_argument("--seed", type=int, default=700)
+    parser.add_argument("--wobble", type=float, nargs="+", default=[0.0, 0.3])
+    parser.add_argument("--odometry", type=float, nargs="+", default=[2.0, 6.0])
+    parser.add_argument("--particles", type=int, nargs="+", default=[20])
+    parser.add_argument("--proposals", nargs="+", default=list(PROPOSALS))
+    parser.add_argument("--out", default=None, help="markdown file for the table")
+    args = parser.parse_args(argv)
+    if args.runs % args.forests or args.runs % min(args.chunk, args.runs):
+        raise SystemExit("--runs must be a multiple of --forests and of --chunk")
+    rows = []
+    for wobble, odometry in itertools.product(args.wobble, args.odometry):
+        truth_params = regime_params(odometry, "lidar")
+        key = jax.random.fold_in(jax.random.PRNGKey(args.seed), int(1000 * wobble + odometry))
+        tick = time.perf_counter()
+        controls, obs, truth, seen = make_logs(key, truth_params, wobble, args.runs,
+                                               args.forests)
+        print(f"wobble {wobble} m, odometry {odometry}x: {args.runs} logs in "
+              f"{time.perf_counter() - tick:.0f} s", flush=True)
+        for particles, name in itertools.product(args.particles, args.proposals):
+            fields, eps = PROPOSALS[name]
+            config = FilterConfig(num_particles=particles, max_landmarks=96, max_obs=12,
+                                  **fields)
+            params = truth_params if eps is None else truth_params._replace(
+                motion_outlier_probability=jnp.float32(eps))
+            error, count, compile_s, run_s = run_point(
+                config, params, jax.random.fold_in(key, 1), controls, obs, truth,
+                min(args.chunk, args.runs))
+            diverged = int(np.sum(error > 1.0))
+            low, high = wilson(diverged, args.runs)
+            rate = args.runs * controls.shape[1] / run_s
+            row = (f"| {wobble:g} | {odometry:g} | {particles} | {name} | {args.runs} | "
+                   f"{100 * diverged / args.runs:.1f} % [{100 * low:.1f}, {100 * high:.1f}] | "
+                   f"{np.median(error):.3f} | {np.median(count / np.maximum(seen, 1)):.2f} | "
+                   f"{rate:.3g} | {compile_s:.1f} |")
+            print(row, flush=True)
+            rows.append(row)
+    table = ("| wobble [m] | odometry x Table 1 | P | proposal | runs | diverged [95 % CI] | "
+             "median final error [m] | landmarks / trees seen (median) | run-steps/s | "
+             "compile [s] |\n|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows))
+    print(table)
+    if args.out:
+        command = "python experiments/proposal_study.py " + " ".join(argv or sys.argv[1:])
+        pathlib.Path(args.out).write_text(table + "\n")
+        print(f"written to {args.out} ({command.strip()})")
+
+
+if __name__ == "__main__":
+    main()
