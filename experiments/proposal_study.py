@@ -30,6 +30,7 @@ from jaxslam.types import FilterConfig
 from sims.forest import random_forest
 from sims.scenario import build_scenario
 
+CHI2_2DOF_95 = 5.991  # 95 % quantile of chi-square with 2 degrees of freedom
 PROPOSALS = {
     # The seed paper's FastSLAM: motion proposal, Gaussian prior, first pose sampled.
     "motion": (dict(proposal="motion", anchor_empty_map=False), 0.0),
@@ -73,12 +74,12 @@ def run_point(config, params, key, controls, obs, truth, chunk: int):
     """Final errors (R,), landmark counts (R,), compile [s] and run [s] of the vmapped filter."""
     filt = make_filter(config)
 
-    def one(key, controls, obs, start):
+    def one(key, controls, obs, start, end):
         state = filt.init(start, dtype=controls.dtype)
         final, trace = scan_filter(config, key, state, params, controls, obs)
         w = jax.nn.softmax(final.log_weight)
         count = jnp.sum(w * jnp.sum(final.particles.active, -1))
-        return trace.mean_pose[-1], count
+        return trace.mean_pose[-1], count, position_nees(final.particles.pose, w, end)
 
     batched = jax.jit(jax.vmap(one))
     runs = controls.shape[0]
@@ -86,21 +87,35 @@ def run_point(config, params, key, controls, obs, truth, chunk: int):
     tick = time.perf_counter()
     sl = slice(0, chunk)
     compiled = batched.lower(keys[sl], controls[sl], jax.tree.map(lambda a: a[sl], obs),
-                             truth[sl, 0]).compile()
+                             truth[sl, 0], truth[sl, -1]).compile()
     compile_s = time.perf_counter() - tick
-    finals, counts, run_s = [], [], 0.0
+    finals, counts, nees, run_s = [], [], [], 0.0
     for lo in range(0, runs, chunk):
         sl = slice(lo, lo + chunk)
         tick = time.perf_counter()
-        final, count = compiled(keys[sl], controls[sl], jax.tree.map(lambda a: a[sl], obs),
-                                truth[sl, 0])
+        final, count, run_nees = compiled(keys[sl], controls[sl],
+                                          jax.tree.map(lambda a: a[sl], obs), truth[sl, 0],
+                                          truth[sl, -1])
         jax.block_until_ready(final)
         run_s += time.perf_counter() - tick
         finals.append(np.asarray(final))
         counts.append(np.asarray(count))
+        nees.append(np.asarray(run_nees))
     final = np.concatenate(finals)
     error = np.hypot(*(final[:, :2] - truth[:, -1, :2]).T)
-    return error, np.concatenate(counts), compile_s, run_s
+    return error, np.concatenate(counts), np.concatenate(nees), compile_s, run_s
+
+
+def position_nees(pose, weight, truth):
+    """(e^T C^-1 e) () of the final position: e = truth - weighted mean, C the particles'
+    weighted position covariance (P, 3) poses, (P,) weights, (3,) truth, plus 1 mm^2 so a
+    collapsed particle set stays invertible. Under a consistent filter it is chi-square with
+    2 degrees of freedom: the 95 % ellipse holds the truth when it is <= 5.991."""
+    mean = weight @ pose[:, :2]
+    diff = pose[:, :2] - mean
+    cov = (diff * weight[:, None]).T @ diff + 1e-6 * jnp.eye(2, dtype=pose.dtype)
+    error = truth[:2] - mean
+    return error @ jnp.linalg.solve(cov, error)
 
 
 def main(argv=None):
@@ -132,7 +147,7 @@ def main(argv=None):
                                   **fields)
             params = truth_params if eps is None else truth_params._replace(
                 motion_outlier_probability=jnp.float32(eps))
-            error, count, compile_s, run_s = run_point(
+            error, count, nees, compile_s, run_s = run_point(
                 config, params, jax.random.fold_in(key, 1), controls, obs, truth,
                 min(args.chunk, args.runs))
             diverged = int(np.sum(error > 1.0))
@@ -141,12 +156,14 @@ def main(argv=None):
             row = (f"| {wobble:g} | {odometry:g} | {particles} | {name} | {args.runs} | "
                    f"{100 * diverged / args.runs:.1f} % [{100 * low:.1f}, {100 * high:.1f}] | "
                    f"{np.median(error):.3f} | {np.median(count / np.maximum(seen, 1)):.2f} | "
+                   f"{np.median(nees):.3g} | {100 * np.mean(nees <= CHI2_2DOF_95):.1f} % | "
                    f"{rate:.3g} | {compile_s:.1f} |")
             print(row, flush=True)
             rows.append(row)
     table = ("| wobble [m] | odometry x Table 1 | P | proposal | runs | diverged [95 % CI] | "
-             "median final error [m] | landmarks / trees seen (median) | run-steps/s | "
-             "compile [s] |\n|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows))
+             "median final error [m] | landmarks / trees seen (median) | final position NEES "
+             "(median) | 95 % ellipse holds the truth | run-steps/s | "
+             "compile [s] |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows))
     print(table)
     if args.out:
         command = "python experiments/proposal_study.py " + " ".join(argv or sys.argv[1:])
