@@ -3,10 +3,11 @@
 A study is R runs of a simulated scenario under one ``FilterConfig``, optionally over a grid of
 ``Params`` values (a sweep: G conditions). The runs come from the simulator the config names
 (``jaxslam.simulators``: a plugin loaded by its module name, "sims" by default) or from a
-``simulate`` function passed to ``run_study``; this module imports no simulator. Run i uses ``fold_in(PRNGKey(seed), i)`` for both
-its scenario and its filter, so every condition sees the same forests, paths and noise (common
-random numbers). Every (run, condition) pair goes through one compiled program of fixed width
-``run_width`` (per device), so on one machine type a run's numbers are bit-identical whatever
+``simulate`` function passed to ``run_study``; this module imports no simulator. Run i uses
+``fold_in(PRNGKey(seed), i)`` for both its scenario and its filter, so every condition sees
+the same forests, paths and noise (common random numbers). Every (run, condition) pair goes
+through one compiled program of fixed width ``run_width`` (per device), so on one machine
+type a run's numbers are bit-identical whatever
 the chunk size, the number of runs or conditions, or the device count (``_ChunkRunner``).
 
 The results folder (layout, integrity manifest, lock, resume rules) is described in

@@ -276,6 +276,7 @@ def _same_angle(a, b, atol):
     np.testing.assert_allclose(np.angle(np.exp(1j * (a - b))), 0.0, atol=atol)
 
 
+@pytest.mark.slow  # 20 s: a whole log run; the export tests above keep the TUM format
 def test_log_run_exports_with_the_logs_timestamps(tmp_path):
     # One subprocess (a console as the user sees it): no warp lines, no float64 warning.
     from jaxslam.datasets.log_format import save_log

@@ -60,8 +60,10 @@ def test_filter_unpacks_as_init_step():
     del step
 
 
-@pytest.mark.parametrize("proposal,pose_uncertainty", [("motion", False),
-                                                      ("observation", True)])
+@pytest.mark.parametrize("proposal,pose_uncertainty", [
+    ("motion", False),
+    # 19 s; the motion case keeps the window logic in the default tier
+    pytest.param("observation", True, marks=pytest.mark.slow)])
 def test_association_window_matches_full_association_when_it_covers_the_map(
         proposal, pose_uncertainty):
     """With more window places than active landmarks, windowed association is exact: the

@@ -83,6 +83,7 @@ def _log(steps=30):
                     obs_valid=z[..., 0] < 6.0, truth_pose=truth, truth_landmarks=trees)
 
 
+@pytest.mark.slow  # 13 s; test_filter_log_calibrates_and_smooths keeps the pipeline
 def test_filter_log_without_calibration_runs_the_given_params():
     config = FilterConfig(num_particles=8, max_landmarks=16)
     # The log's sensor sees 6 m: with the default 20 m, trees behind the robot would count

@@ -90,6 +90,7 @@ def test_a_registered_simulator_parses_its_own_scenario_section():
     assert studies.condition_params(config).max_range.tolist() == [9.0]  # the sensor range
 
 
+@pytest.mark.slow  # 19 s: two studies; the registry tests above keep the lookup and errors
 def test_run_study_takes_a_simulator_function(tmp_path):
     from sims.batch import scenario_batch
 

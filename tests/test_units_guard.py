@@ -147,6 +147,7 @@ def _log(steps=20, degrees=False):
                     obs_valid=z[..., 0] < 6.0, truth_pose=truth, truth_landmarks=trees)
 
 
+@pytest.mark.slow  # 13 s; test_hostile_inputs keeps the degrees warning on filter_log
 def test_filter_log_warns_about_a_log_in_degrees():
     log = _log(degrees=True)
     run = pipeline.filter_log(log, FilterConfig(num_particles=4, max_landmarks=16),

@@ -652,6 +652,7 @@ def test_missing_rosbags_names_the_extra(small_bag, monkeypatch, capsys):
 # ---------------------------------------------------------------------------- CLI
 
 
+@pytest.mark.slow  # 13 s: convert + a filter run; the reader tests keep the bag path
 def test_cli_convert_then_run(tmp_path, monkeypatch, capsys):
     topics, _ = scene_topics("ros1", num_scans=10)
     bag = write_bag(tmp_path / "tiny.bag", "ros1", topics)
