@@ -222,7 +222,7 @@ def defensive_bursts(config: FilterConfig) -> tuple[float, float]:
 
 
 def _motion_update(res: _Residuals, params: Params, scales: smoothing.NoiseScales,
-                   no_bursts: tuple[float, float] = (0.0, 8.0)):
+                   no_bursts: tuple[float, float]):
     """(coefficients (3, 3) of rot1, trans, rot2, burst probability, burst scale), or None
     when there are too few moves. Bursts (``fit_bursts``) or, without them, the tail factor
     and ``no_bursts`` (eps, kappa) (``defensive_bursts``)."""
