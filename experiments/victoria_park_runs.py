@@ -11,7 +11,10 @@ Each run r uses key fold_in(PRNGKey(0), r), so two settings see the same keys. S
         --params radius_noise=0.0 association_gate=13.8
 
 Prints one line: RMSE [m] of each run, their median, the final tree counts and the run time.
-The comparisons quoted in ``victoria_park_slam`` and docs/results.md were made this way.
+The comparisons quoted in docs/results.md (victoria_park, tuning history) were made this way.
+``--settings`` picks the set of experiments/configs/victoria_park.toml whose fixed values
+start the run (default "legacy"; the "calibrated" set's calibrated fields need
+``experiments/victoria_park.py``, which calibrates them from the log first).
 """
 from __future__ import annotations
 
@@ -19,10 +22,11 @@ import argparse
 import ast
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
+import victoria_park_pipeline as vps  # experiments/ (this script's folder)
 from jaxslam.datasets import victoria_park as vpm
-from jaxslam.datasets import victoria_park_slam as vps
 
 
 def settings(pairs: list[str], what: str) -> dict:
@@ -41,22 +45,30 @@ def settings(pairs: list[str], what: str) -> dict:
 
 
 def steering_bias(text: str):
-    if text == "laser":
+    if text in ("laser", "constant"):
         return text
     try:
         return float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected 'laser' or a number [rad]")
+        raise argparse.ArgumentTypeError(f"{text!r}: expected 'laser', 'constant' or a "
+                                         "number [rad]") from None
 
 
 def parse_args():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=8)
+    parser.add_argument("--settings", choices=(vps.LEGACY, vps.CALIBRATED), default=vps.LEGACY,
+                        help="settings set of experiments/configs/victoria_park.toml (its "
+                             "filter, fixed params and smoother)")
+    parser.add_argument("--params-file", default=None,
+                        help="Params TOML (e.g. calibrated_params.toml written by "
+                             "experiments/victoria_park.py); --params override it")
     parser.add_argument("--particles", type=int, default=100)
     parser.add_argument("--scans", type=int, default=None, help="prefix length (default all)")
     parser.add_argument("--steering-bias", type=steering_bias, default="laser",
-                        help="'laser' (default: the steering_bias_profile of the scans) or a "
-                             f"constant [rad], e.g. {vps.STEERING_BIAS}")
+                        help="'laser' (default: the steering_bias_profile of the scans), "
+                             "'constant' (their steering_bias_from_scans) or a constant "
+                             f"[rad], e.g. {vps.STEERING_BIAS}")
     parser.add_argument("--config", nargs="*", default=[], help="FilterConfig fields")
     parser.add_argument("--params", nargs="*", default=[], help="Params fields")
     parser.add_argument("--detector", nargs="*", default=[], help="detect_trunks settings")
@@ -72,14 +84,22 @@ def main():
     log = vpm.victoria_park_log(data)
     obs = vps.detect_scans(log.scan_ranges, log.scan_angles,
                            **settings(args.detector, "detector"))
-    config = vps.victoria_park_config(num_particles=args.particles,
-                                      **settings(args.config, "config"))
-    params = vps.victoria_park_params(config, **settings(args.params, "params"))
+    chosen = vps.load_settings(args.settings)
+    config = vps.settings_config(chosen, num_particles=args.particles,
+                                 **settings(args.config, "config"))
+    if args.params_file:
+        from jaxslam.pipeline import load_params
+
+        params = load_params(args.params_file, config)._replace(
+            **{name: jnp.asarray(value, jnp.float32)
+               for name, value in settings(args.params, "params").items()})
+    else:
+        params = vps.settings_params(chosen, config, **settings(args.params, "params"))
     batch = vps.run_victoria_park_batch(jax.random.key(0), data, args.runs, config,
                                         params=params, observations=obs,
                                         num_scans=args.scans,
                                         steering_bias=args.steering_bias,
-                                        smooth=args.smooth)
+                                        smooth=args.smooth, smoother=chosen.smoother)
     if args.smooth:
         smoothed = batch.smoothed_rmse
         print(f"smoothed rmse [m] {np.round(smoothed, 2).tolist()} median "
@@ -87,7 +107,8 @@ def main():
               f"<= 2 m: {int(np.sum(smoothed <= 2.0))} | smoothing {batch.smooth_s:.0f} s")
     print(f"rmse [m] {np.round(batch.rmse, 1).tolist()} median {np.median(batch.rmse):.2f} | "
           f"trees {batch.num_trees.tolist()} | compile {batch.compile_s:.1f} s, "
-          f"run {batch.run_s:.0f} s | P={args.particles} scans={args.scans or 'all'} "
+          f"run {batch.run_s:.0f} s | settings={args.settings} "
+          f"params_file={args.params_file} P={args.particles} scans={args.scans or 'all'} "
           f"bias={args.steering_bias} config={args.config} params={args.params} "
           f"detector={args.detector}", flush=True)
 

@@ -602,7 +602,7 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
       link_std: [m] std of a link; link_threshold: Geman-McClure scale (whitened units; a
         link stretched link_std * link_threshold metres has ``link_weight`` 1/2). The
         defaults, 0.2 m and half weight at 0.5 m, were tuned on 16 Victoria Park runs
-        (``victoria_park_slam.SMOOTH_LINK_*``, where the measured effect is recorded): trunk
+        (docs/results.md, section victoria_park, records the measured effect): trunk
         centres seen on two visits agree to a few decimetres, a wrong tree is metres away.
       link_neighbours: earlier visits each visit is linked to.
     Returns:

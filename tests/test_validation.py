@@ -181,9 +181,10 @@ def test_valid_edges_pass(overrides, dtype):
 
 
 def test_library_parameter_sets_pass():
-    from jaxslam.datasets.victoria_park_slam import victoria_park_params
+    from experiments.victoria_park_pipeline import CALIBRATED, LEGACY, victoria_park_params
 
-    check_params(victoria_park_params())
+    check_params(victoria_park_params(settings=LEGACY))
+    check_params(victoria_park_params(settings=CALIBRATED))
     check_params(default_params()._replace(max_range=20.0, miss_range=np.float32(5.0)))
 
 

@@ -233,7 +233,7 @@ def filter_gps(time, xy, max_speed: float = 10.0, jump_margin: float = 1.0,
 
 # Pure-turn threshold for splitting the integrated dead-reckoning moves into (rot1, trans,
 # rot2): 1 mm, not the filter's 1 cm default (these moves are integrated, not jittering poses;
-# see ``victoria_park_slam.victoria_park_controls`` for the measured effect).
+# docs/results.md, section victoria_park, records the measured effect).
 VP_MIN_TRANSLATION = 1e-3
 
 

@@ -1,40 +1,38 @@
-"""FastSLAM on Victoria Park: batched trunk detection, dataset-tuned settings, GPS evaluation.
+"""Victoria Park FastSLAM runner: trunk detection, steering-bias calibration, settings sets,
+filter / smoother runs and their GPS scores (the loader is ``jaxslam.datasets.victoria_park``).
 
 Pipeline (one filter step per laser scan, T = 7230 for the whole run):
   1. ``detect_scans``: ``jaxslam.detect.detect_trunks`` on every raw scan at once (``jax.vmap``
-     over the (T, B) ranges) -> ``Observations`` with (T, K) leaves. Beams under
-     ``min_range`` = 1.5 m are the vehicle's own body (beams 0-11 always read about 0.83 m)
-     and are treated as no return.
+     over the (T, B) ranges) -> ``Observations`` with (T, K) leaves, with the classic
+     detector's limits from the dataset README (``CLASSIC_DETECTOR``) and the body mask
+     (``BODY_RANGE``).
   2. ``victoria_park_controls``: (rot1, trans, rot2) moves integrated from the 40 Hz Ackermann
-     dead reckoning between laser times (the pose is the laser's), with the steering angle
-     corrected by a bias (the raw dead-reckoning heading turns slower than the laser sees it
-     turn). By default the bias varies along the log: ``steering_bias_profile`` fits it in
-     600-scan windows to the scan-to-scan turns of the laser alone (no GPS);
-     ``steering_bias_from_scans`` gives one constant (``STEERING_BIAS``) the same way and
-     ``steering_bias_from_gps`` one from the GPS course.
-     ``victoria_park_config`` / ``victoria_park_params``: odometry motion model, the
-     observation proposal, small motion noise (``MOTION_NOISE``), metre-level trunk
-     observation noise, a 45 m matching range (misses counted within 30 m), and long-lived
-     landmarks (``existence_max`` = 30: a tree seen often is not deleted by the misses of an
-     occluded stretch; with the default 6 every tree was forgotten after ~36 misses, loops
-     never closed and the path drifted like dead reckoning).
-  3. ``run_victoria_park``: one compiled ``run_filter`` call; the weighted-mean path is scored
+     dead reckoning between laser times (the pose is the laser's), the steering angle
+     corrected by a bias b fitted to the scan-to-scan turns of the laser alone
+     (``steering_bias_from_scans``: one constant; ``steering_bias_profile``: fits in windows).
+     ``steering_bias_from_gps`` fits the same bias to the GPS course (a comparison only).
+  3. Settings: a named set of ``experiments/configs/victoria_park.toml`` (``load_settings``):
+     "calibrated" (every field from the documentation, the library default, or estimated
+     from the log by ``calibrate_victoria_park``: ``jaxslam.pipeline.filter_log`` with
+     ``calibrate=True`` on the log as a ``RobotLog``, then ``radius_noise_from_history``)
+     or "legacy" (the earlier set chosen by GPS score, in-sample).
+  4. ``run_victoria_park``: one compiled ``run_filter`` call; the weighted-mean path is scored
      against GPS by ``victoria_park.gps_error`` (outliers removed by ``filter_gps``, a rigid
-     SE(2) fit, RMSE at the GPS times); the map is the best particle's. By default
-     (``smooth=True``) the filter also records its lineage and the best particle's history
-     is re-solved by ``smoothing`` (associations fixed, ``SMOOTH_CALIBRATE_ROUNDS`` of noise
-     calibration; with ``smooth_visit_gap`` the loop closures are revised too) and scored
-     the same way.
-  4. ``run_victoria_park_batch``: R independent runs (keys ``fold_in(key, r)``) in one call
-     (``jax.vmap`` over keys; with ``smooth=True``, ``chunk`` runs at a time), summarised
-     per run on the host.
+     SE(2) fit, RMSE at the GPS times); the map is the best particle's. With ``smooth=True``
+     the filter also records its lineage and the best particle's history is re-solved by
+     ``smoothing.smooth_lineage`` (associations fixed) and scored the same way.
+  5. ``run_victoria_park_batch``: R independent runs (keys ``fold_in(key, r)``) in one call
+     (``jax.vmap`` over keys; with ``smooth=True``, ``chunk`` runs at a time).
 
-Compile and run times are measured apart (``block_until_ready`` after each), as in MJX/brax.
+GPS is used only to score (and by ``steering_bias_from_gps``, a comparison). Compile and run
+times are measured apart (``block_until_ready`` after each).
 """
 from __future__ import annotations
 
 import functools
+import pathlib
 import time
+import tomllib
 from typing import NamedTuple
 
 import jax
@@ -42,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from jaxslam import lineage, smoothing
 from jaxslam.datasets.log_format import VICTORIA_PARK_VEHICLE, body_rates, integrate_controls
 from jaxslam.datasets.victoria_park import (
     VP_MIN_TRANSLATION,
@@ -52,112 +51,132 @@ from jaxslam.datasets.victoria_park import (
     rigid_transform_2d,
     victoria_park_log,
 )
-from jaxslam import lineage, smoothing
 from jaxslam.detect import detect_trunks
 from jaxslam.filter import estimate, run_filter
 from jaxslam.types import FilterConfig, Observations, Params, default_params
 
-# The classic detector's figures (dataset README): beams under 75 m, segments split at range
-# jumps over 1.5 m, occluded and over-1-m-wide segments rejected, at most 18 trunks a scan.
+# The classic detector's figures (dataset README, "Known figures"): beams under 75 m, segments
+# split at range jumps over 1.5 m, occluded and over-1-m-wide segments rejected, at most 18
+# trunks a scan.
 CLASSIC_DETECTOR = dict(max_range=75.0, range_jump=1.5, max_width=1.0)
 CLASSIC_MAX_TRUNKS = 18
-BODY_RANGE = 1.5  # beams nearer than this hit the vehicle itself
+# Beams nearer than 1.5 m hit the vehicle itself (beams 0-11 of every scan read about 0.83 m).
+BODY_RANGE = 1.5
 
 # Ground strikes: when the vehicle pitches, the laser hits the grass at a nearly constant
-# range (~25 m) over tens of degrees with a dropout every 2-4 beams (e.g. scans 4715-4730).
-# Split at every dropout, each piece passed as a trunk (6-11 per scan) and was matched to old
-# landmarks. Bridging up to 2 missing beams where the ranges agree within 0.3 m keeps such an
-# arc one wide segment (rejected); trunks beside a dropout and a neighbour at another range
-# stay apart. It removes 928 of 30,266 detections. P=100, 8 runs, with the earlier x1 motion
-# noise and the motion proposal (see ``MOTION_NOISE``): first 3,500 scans, GPS
-# RMSE median 1.94 m (1.72 without), trees 97-101 (104-108 without); whole log (bias
-# 0.0052), 17.6 m (15.5 without), trees median 198 (208 without): no accuracy change that 8
-# runs can resolve, fewer phantom trees.
+# range (~25 m) over tens of degrees with a dropout every 2-4 beams (e.g. scans 4715-4730);
+# split at every dropout, each piece passes as a trunk. Bridging up to 2 missing beams where
+# the ranges agree within 0.3 m keeps such an arc one wide segment (rejected by the 1 m width
+# limit); trunks beside a dropout and a neighbour at another range stay apart. Chosen from
+# the scans (``test_ground_strike_is_not_a_row_of_trunks``); it removes 928 of 30,266
+# detections.
 GROUND_STRIKE_BRIDGING = dict(max_missing_beams=2, bridge_range_jump=0.3)
 
 DETECTOR_DEFAULTS = dict(
     method="centroid", min_range=BODY_RANGE, min_points=3, min_width=0.04, max_radius=0.6,
     max_residual=0.1, **CLASSIC_DETECTOR, **GROUND_STRIKE_BRIDGING)
 
-# Motion noise std = c_trans |trans| + c_rot |rot| + c_const (Geiser et al. 2023, Eq. 1). The
-# steering-corrected dead reckoning is locally accurate (its scan-to-scan turns differ from the
-# laser's by 4.4 mrad rms, laser noise included), so the noise is small: 1/8 of the first
-# values (0.01, 0.10, 0.002) / (0.08, 0.02, 0.01), whose heading noise alone (~12 mrad a
-# scan) was ~2.7x that rms.
-# Sweep of that scale, whole log, P=100, 16 runs each (keys fold_in(key(0), r)), observation
-# proposal with pose-uncertainty matching, GPS RMSE median (range) [m]:
-#   x1 16.4 (100 runs, motion proposal; 10-90% 8.6-37), x1/2 10.4 (3.3-33), x1/4 6.8
-#   (4.1-11; motion proposal 7.9, 4.6-12), x1/8 5.8 (4.6-14), x1/16 5.1 (3.5-13),
-#   x1/32 21.1 (17-23: too little spread, 213-257 trees from duplicated landmarks).
-# x1/8 keeps a factor of 4 from that cliff; x1/16 is not better by more than 16 runs resolve.
-# GPS chose this one number; the reported Monte Carlo uses other keys.
-MOTION_NOISE = dict(
-    rot1_noise=(0.00125, 0.0125, 0.00025),
-    trans_noise=(0.01, 0.0025, 0.00125),
-    rot2_noise=(0.00125, 0.0125, 0.00025),
-)
-
-PARAM_DEFAULTS = dict(
-    **MOTION_NOISE,
-    motion_outlier_probability=0.0,  # a Gaussian motion prior (see victoria_park_config)
-    # Observation: trunk centres from 3-10 beams of a 0.5-degree laser.
-    range_noise=(0.01, 0.5),
-    bearing_noise=(0.0, 0.04),
-    range_std_floor=0.05,
-    bearing_std_floor=0.005,
-    # Trunks are matched out to 45 m, but only those predicted within 30 m count as missed
-    # when unseen: far trunks are detected now and then, and a 45 m miss range deleted most
-    # of the map (72-84 trees). Whole log, P=100, 16 runs (keys fold_in(key(0), r)), constant
-    # steering bias, GPS RMSE median: 30 m / 30 m 5.8 m (trees 156-180); 45 m / 30 m 5.3 m
-    # (178-188); 60 m / 30 m 4.9 m (196-215: over the ~150 trees, so not taken); 45 m / 45 m
-    # 10.5 m (72-84).
-    max_range=45.0,
-    miss_range=30.0,
-    min_range=BODY_RANGE,
-    # The trunk radius joins association and weights (Params.radius_noise), which lets the
-    # gate open up. Centroid radii of one tree scatter by 0.045 m (MAD) and 0.04-0.075 m rms;
-    # trees differ (5-95 % 0.10-0.38 m, 171 trees seen >= 20 times). Observations that a
-    # GPS-good run puts > 3 m from the tree they were matched to (wrong loop closures: a
-    # constellation shifted by one tree spacing) differ from that tree's radius by > 0.09 m
-    # 39-46 % of the time, right ones 10 %. Whole log, P=100, 16 runs (keys fold_in(key(0),
-    # r)), GPS RMSE median / mean / max, online -> smoothed (runs <= 2 m smoothed):
-    #   radius unused, gate 13.8 (chi-square 2 dof, 99.9 %): 3.62 -> 2.04 / 2.37 / 6.6 m (7)
-    #   radius std 0.05, gate 16.27 (3 dof, 99.9 %):          2.66 -> 1.85 / 3.31 / 13.0 m (12)
-    #   radius std 0.07, gate 16.27:                           3.25 -> 1.68 / 2.58 / 7.2 m (12)
-    #   radius std 0.07, gate 25:                              3.09 -> 1.57 / 1.59 / 1.67 m (16)
-    # With the tight gate the radius refused the wrong-but-near matches that had kept a
-    # drifted stretch roughly tied to the map: 3 of the 16 runs missed the closure at scans
-    # ~6,250-6,750 (5-7 m RMSE), and 32 of the 100 Monte Carlo runs (keys fold_in(key(1), r))
-    # came out at 5-11 m. The wider gate lets the right tree in when the pose has drifted,
-    # and the radius keeps the wrong neighbours out. The 100 runs with gate 25: smoothed
-    # median 1.60 m, 98 at or under 2 m (docs/results.md).
-    radius_noise=0.07,
-    association_gate=25.0,
-    airlock_sigmas=float(np.sqrt(13.8)),
-    # Trunks within range are detected in only ~1 scan in 3 (occlusion, too few beams, fit
-    # rejections), so a miss must cost little: p_d = 0.3 gives +1.10 per hit, -0.25 per miss.
-    detection_probability=0.3,
-    false_alarm_probability=0.1,
-    existence_init=1.0,
-    existence_delete=-3.0,
-    # Clip of the log-odds: a tree seen 30 times survives (30 + 3) / 0.25 = 132 misses. With
-    # 6, trees were deleted behind occlusions and re-born at the drifted pose (no loop
-    # closure): P=32 on 4,000 scans, 13.6-22 m RMSE with 6, 1.4 m with 30.
-    existence_max=30.0,
-)
-
-# Steering bias [rad] added to aa3_dr.mat's steering, calibrated from the laser alone (no
-# GPS): ``steering_bias_from_scans(data, detect_scans(...))`` = 0.0041 +- 0.0003 over the
-# whole log (per 500-scan window 1.6-6.2 mrad, mostly 3-5: a steady bias, not a drift). The
-# GPS course fit ``steering_bias_from_gps`` gives 0.0052, which suits pure dead reckoning
-# (31.3 m RMSE against GPS vs 37.8 m with 0.0041; 91.8 m raw). The laser fit is used so that
-# GPS serves only as the evaluation truth. Effect on the filter (P=100, GPS RMSE median over
-# runs, with the earlier x1 motion noise and the motion proposal): first 3,500 scans, 8
-# runs: 1.94 m (0.0041) vs 1.91 m (0.0052); whole log, 8 runs: 10.2 m (0.0040), 11.0 m
-# (0.0030), 17.6 m (0.0052); whole log, 100 runs at 0.0041: 16.4 m (10-90% 8.6-37 m). The
-# 8-run medians are within the run-to-run spread: no setting is shown better than another
-# on the whole log. The bias was not re-swept with ``MOTION_NOISE``.
+# Steering bias [rad] added to aa3_dr.mat's steering, from the laser alone:
+# ``steering_bias_from_scans(data, detect_scans(...))`` = 0.0041 +- 0.0003 over the whole log.
 STEERING_BIAS = 0.0041
+
+SETTINGS_FILE = pathlib.Path(__file__).resolve().parent / "configs" / "victoria_park.toml"
+SOURCES = ("documentation", "calibrated", "library default", "GPS-tuned (legacy)")
+SETTINGS_SECTIONS = ("run", "filter", "params", "smoother")
+LEGACY = "legacy"
+CALIBRATED = "calibrated"
+
+
+class Settings(NamedTuple):
+    """One named settings set of ``SETTINGS_FILE``.
+
+    Attributes:
+      name / description: the TOML table's name and its one-line description.
+      calibrate: whether the Params fields tagged "calibrated" are estimated from the log.
+      run / filter / params / smoother: {field: value} of the entries that carry a value
+        (run: steering_bias "constant" or "profile", bias_window; filter: FilterConfig
+        fields; params: Params fields; smoother: ``smoothing.smooth_path`` keywords).
+      sources: {"section.field": source tag} of every entry (``SOURCES``).
+      calibrated: Params fields left to the calibration.
+    """
+
+    name: str
+    description: str
+    calibrate: bool
+    run: dict
+    filter: dict
+    params: dict
+    smoother: dict
+    sources: dict
+    calibrated: tuple
+
+
+def parse_settings(table: dict, name: str) -> Settings:
+    """A ``Settings`` from one TOML table {section: {field: {value, source, note}}}.
+
+    Raises ValueError naming the entry for an unknown source tag, a missing value on an entry
+    that is not "calibrated", or an unknown section or key.
+    """
+    unknown = set(table) - set(SETTINGS_SECTIONS) - {"description", "calibrate"}
+    if unknown:
+        raise ValueError(f"settings {name!r}: unknown section(s) {sorted(unknown)}; expected "
+                         f"{list(SETTINGS_SECTIONS)}, description, calibrate")
+    values, sources, calibrated = {}, {}, []
+    for section in SETTINGS_SECTIONS:
+        values[section] = {}
+        for field, entry in table.get(section, {}).items():
+            where = f"settings {name!r}, {section}.{field}"
+            if not isinstance(entry, dict) or "source" not in entry:
+                raise ValueError(f"{where}: expected a table {{value = ..., source = ...}}")
+            extra = set(entry) - {"value", "source", "note"}
+            if extra:
+                raise ValueError(f"{where}: unknown key(s) {sorted(extra)}")
+            if entry["source"] not in SOURCES:
+                raise ValueError(f"{where}: source {entry['source']!r}; expected one of "
+                                 f"{list(SOURCES)}")
+            sources[f"{section}.{field}"] = entry["source"]
+            if "value" in entry:
+                value = entry["value"]
+                values[section][field] = tuple(value) if isinstance(value, list) else value
+            elif entry["source"] == "calibrated" and section == "params":
+                calibrated.append(field)
+            else:
+                raise ValueError(f"{where}: no value (only calibrated Params may leave it out)")
+    return Settings(name=name, description=str(table.get("description", name)),
+                    calibrate=bool(table.get("calibrate", False)), run=values["run"],
+                    filter=values["filter"], params=values["params"],
+                    smoother=values["smoother"], sources=sources, calibrated=tuple(calibrated))
+
+
+def load_settings(name: str = CALIBRATED, path=SETTINGS_FILE) -> Settings:
+    """The settings set ``name`` ("calibrated" or "legacy") of the TOML file ``path``."""
+    with open(path, "rb") as handle:
+        tables = tomllib.load(handle)
+    if name not in tables:
+        raise ValueError(f"{path}: no settings set {name!r}; expected one of {sorted(tables)}")
+    return parse_settings(tables[name], name)
+
+
+def settings_config(settings: Settings, **fields) -> FilterConfig:
+    """``FilterConfig`` of the set's filter fields, then ``fields`` (overrides)."""
+    return FilterConfig(**{**settings.filter, **fields})
+
+
+def settings_params(settings: Settings, config: FilterConfig | None = None,
+                    dtype=jnp.float32, **overrides) -> Params:
+    """``Params`` of the set's fixed values, then ``overrides``.
+
+    A set with ``calibrate`` gives the calibration's starting point,
+    ``self_calibration.starting_params`` with its fixed values (the fields tagged
+    "calibrated" are then estimated by ``calibrate_victoria_park``); otherwise
+    ``default_params`` with its values.
+    """
+    values = {**settings.params, **overrides}
+    if settings.calibrate:
+        from jaxslam.self_calibration import starting_params
+
+        return starting_params(config, dtype=dtype, **values)
+    return default_params(config, dtype=dtype, **values)
 
 
 def victoria_park_controls(data: VictoriaPark, steering_bias=STEERING_BIAS,
@@ -170,9 +189,9 @@ def victoria_park_controls(data: VictoriaPark, steering_bias=STEERING_BIAS,
     ``log_format.integrate_controls`` exactly as ``victoria_park.dead_reckoning_controls``
     (which is this with bias 0 and scale 1).
 
-    Moves are split into (rot1, trans, rot2) with a 1 mm pure-turn threshold, not the 1 cm
-    default: these moves are integrated dead reckoning, not jittering poses, and on the whole
-    log (P=100, seeds 0-3) 1 mm gave GPS RMSE 13.4-17.2 m where 1 cm gave 12.0-39.4 m.
+    Moves are split into (rot1, trans, rot2) with the loader's 1 mm pure-turn threshold
+    (``victoria_park.VP_MIN_TRANSLATION``): these moves are integrated dead reckoning, not
+    jittering poses.
     """
     steering_bias = np.asarray(steering_bias, np.float64)
     if steering_bias.ndim and steering_bias.shape != data.dr_steering.shape:
@@ -288,13 +307,8 @@ def steering_bias_from_scans(data: VictoriaPark, observations: Observations,
     return bias, error
 
 
-# Scans in each window of ``steering_bias_profile`` (about 2 minutes, 300 m of driving).
-# Whole log, P=100, 16 runs (keys fold_in(key(0), r)), GPS RMSE median. With a 30 m
-# matching range: constant 4.1 mrad 5.8 m; profile with 600-scan windows 4.1 m,
-# 1200-scan windows 4.8 m; 600-scan windows ending at each scan (causal, online) 5.1 m; a
-# random-walk bias smoothed by Kalman/RTS with its variance by maximum likelihood chose a
-# constant (5.6 m). With the 45 m / 30 m matching / miss ranges: constant 5.3 m; windows of
-# 400 / 600 / 900 scans 3.5 / 3.6 / 3.7 m (flat: 600 kept).
+# Scans in each window of ``steering_bias_profile`` (about 2 minutes, 300 m of driving); the
+# length was chosen by GPS score (the "legacy" set; docs/results.md, victoria_park).
 BIAS_WINDOW = 600
 
 
@@ -366,8 +380,8 @@ def detect_scans(ranges, angles, max_obs: int = CLASSIC_MAX_TRUNKS, dtype=jnp.fl
       angles: (B,) beam bearings [rad] in the robot frame.
       max_obs: K, trunks kept per scan (the nearest ones).
       to_centre: with the centroid method, move ranges to the trunk centre
-        (``centroid_to_centre``). Off by default: on 3,000-scan prefixes (P=32, two seeds)
-        it did not help.
+        (``centroid_to_centre``). Off by default (it did not help on prefixes of the
+        log; docs/results.md).
       **settings: ``detect_trunks`` keywords overriding ``DETECTOR_DEFAULTS``.
     Returns:
       ``Observations`` with z (T, K, 2), valid (T, K), radius (T, K), landmark_id (T, K).
@@ -427,40 +441,163 @@ def summarize_detections(observations: Observations) -> DetectionSummary:
         radius_median=float("nan") if empty else float(np.median(radius)))
 
 
-def victoria_park_config(num_particles: int = 100, max_landmarks: int = 320,
-                         max_obs: int = CLASSIC_MAX_TRUNKS, **fields) -> FilterConfig:
-    """``FilterConfig`` for Victoria Park: odometry controls, stable matching, loose boundary,
-    association against each particle's 48 nearest landmarks (at most ~15 trunks are seen per
-    scan; with the earlier x1 motion noise and the motion proposal, seed 0 gave the same run
-    as the full association, 18 s instead of 24 s), and the
-    observation proposal (FastSLAM 2.0) matching at the motion prediction with the pose
-    uncertainty added (``match_pose_uncertainty``). Whole log, P=100, 16 runs, GPS RMSE
-    median, with the constant steering bias and 30 m range of the time: at 1/4 of the first
-    motion noise, 6.8 m with this proposal and 7.9 m with the motion proposal; at
-    ``MOTION_NOISE`` (1/8) with it, 5.8 m. With today's defaults (bias profile, 45 m / 30 m
-    ranges), before the trunk radius: 3.6 m online, 2.04 m smoothed (100 other runs: 4.05 m
-    online, 2.02 m smoothed); with it (``PARAM_DEFAULTS``): 3.1 m online, 1.57 m smoothed
-    (100 other runs: 2.63 m online, 1.60 m smoothed). Any field can be overridden."""
-    fields.setdefault("association_window", 48)
-    fields.setdefault("proposal", "observation")
-    fields.setdefault("match_pose_uncertainty", True)
-    # The settings its results were measured with, before the library's defaults gained
-    # these (first pose sampled, matched at x_hat only, one Gaussian, no bursts).
-    fields.setdefault("anchor_empty_map", False)
-    fields.setdefault("associate_at_sample", False)
-    fields.setdefault("burst_proposal", False)
-    return FilterConfig(num_particles=num_particles, max_landmarks=max_landmarks,
-                        max_obs=max_obs, motion_model="odometry", **fields)
+def _settings(settings: str | Settings) -> Settings:
+    return load_settings(settings) if isinstance(settings, str) else settings
+
+
+def victoria_park_config(settings: str | Settings = LEGACY, **fields) -> FilterConfig:
+    """``FilterConfig`` of a settings set (a name of ``SETTINGS_FILE`` or a ``Settings``;
+    default "legacy", the set whose values need no calibration), then ``fields``."""
+    return settings_config(_settings(settings), **fields)
 
 
 def victoria_park_params(config: FilterConfig | None = None, dtype=jnp.float32,
-                         **overrides) -> Params:
-    """``default_params`` with ``PARAM_DEFAULTS`` (tuned on prefixes of the log), then overrides.
+                         settings: str | Settings = LEGACY, **overrides) -> Params:
+    """``settings_params`` of a settings set (default "legacy"), then ``overrides``.
 
     Noise scales: ``motion_scale`` is not a field; scale the noise tuples yourself, e.g.
-    ``trans_noise=tuple(2 * c for c in PARAM_DEFAULTS["trans_noise"])``.
+    ``trans_noise=tuple(2 * c for c in load_settings("legacy").params["trans_noise"])``.
     """
-    return default_params(config, dtype=dtype, **{**PARAM_DEFAULTS, **overrides})
+    return settings_params(_settings(settings), config, dtype, **overrides)
+
+
+def smoother_options(settings: str | Settings = LEGACY) -> dict:
+    """``smoothing.smooth_path`` keywords of a settings set (its ``smoother`` table)."""
+    return dict(_settings(settings).smoother)
+
+
+def steering_bias_of(settings: Settings, data: VictoriaPark, observations: Observations):
+    """The set's steering bias [rad] from the scans alone: "constant" gives the number of
+    ``steering_bias_from_scans``, "profile" the (D,) ``steering_bias_profile`` with the set's
+    ``bias_window``; a number is used as it is."""
+    mode = settings.run.get("steering_bias", "constant")
+    if mode == "constant":
+        return steering_bias_from_scans(data, observations)[0]
+    if mode == "profile":
+        return steering_bias_profile(data, observations,
+                                     int(settings.run.get("bias_window", BIAS_WINDOW)))
+    if isinstance(mode, (int, float)) and not isinstance(mode, bool):
+        return float(mode)
+    raise ValueError(f"settings {settings.name!r}: run.steering_bias={mode!r}; expected "
+                     "'constant', 'profile' or a number [rad]")
+
+
+def victoria_park_robot_log(data: VictoriaPark, observations: Observations, steering_bias,
+                            num_scans: int | None = None):
+    """The first T = ``num_scans`` scans as a ``RobotLog`` with detections: the input of
+    ``jaxslam.pipeline.filter_log``.
+
+    controls (T, 3): ``victoria_park_controls(data, steering_bias)``; obs_z (T, K, 2),
+    obs_valid (T, K), obs_radius (T, K): ``observations``; GPS: the filtered fixes (the
+    pipeline scores nothing with them: a RobotLog's truth is ``truth_pose``). No raw scans.
+    """
+    log = victoria_park_log(data)
+    steps = _prefix(num_scans, log.num_steps)
+    obs = jax.tree.map(lambda leaf: np.asarray(leaf)[:steps], observations)
+    return log._replace(time=log.time[:steps],
+                        controls=victoria_park_controls(data, steering_bias)[:steps],
+                        obs_z=np.asarray(obs.z, np.float64), obs_valid=np.asarray(obs.valid),
+                        obs_radius=np.asarray(obs.radius, np.float64), scan_ranges=None,
+                        scan_angles=None)
+
+
+def radius_noise_from_history(ids, radius, valid, min_sightings: int = 3) -> tuple[float, int]:
+    """Std [m] of one detected trunk radius from the scatter within each tree, no GPS.
+
+    ids: (T, K) landmark identity of each observation along one particle's history
+    (``lineage.landmark_identities``; -1: none); radius: (T, K) detected radii; valid:
+    (T, K). Over the landmarks with at least ``min_sightings`` sightings, the deviations
+    e = r - median_j(r) of each radius from its tree's median are pooled and
+    std = 1.4826 median |e| (the median absolute deviation: robust to the few wrong
+    associations, which would widen a plain std). Returns (std, observations used);
+    (nan, 0) when no landmark was seen often enough.
+    """
+    ids = np.where(np.asarray(valid, bool), np.asarray(ids), -1).ravel()
+    radius = np.asarray(radius, np.float64).ravel()
+    keep = ids >= 0
+    ids, radius = ids[keep], radius[keep]
+    if ids.size == 0:
+        return float("nan"), 0
+    labels, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
+    often = counts[inverse] >= min_sightings
+    if not often.any():
+        return float("nan"), 0
+    medians = np.array([np.median(radius[inverse == j]) if counts[j] >= min_sightings
+                        else np.nan for j in range(labels.size)])
+    deviation = radius[often] - medians[inverse[often]]
+    return float(1.4826 * np.median(np.abs(deviation))), int(often.sum())
+
+
+class VictoriaParkCalibration(NamedTuple):
+    """``calibrate_victoria_park``'s result.
+
+    Attributes:
+      params: the calibrated ``Params`` (``calibrate_params`` and ``radius_noise``).
+      info: ``self_calibration.CalibrationInfo`` of the EM.
+      radius_noise / radius_samples: ``radius_noise_from_history`` of the calibrated run.
+      steering_bias: the bias [rad] the controls were corrected with.
+      seconds: wall time of the calibration (filter_log: EM iterations and one final run).
+      path: (T, 3) the weighted-mean path of filter_log's final run (key of the calibration,
+        calibrated Params without the radius); num_trees: its final map size.
+      warnings: filter_log's warnings.
+    """
+
+    params: Params
+    info: object
+    radius_noise: float
+    radius_samples: int
+    steering_bias: object
+    seconds: float
+    path: np.ndarray
+    num_trees: int
+    warnings: tuple
+
+
+def calibrate_victoria_park(key, data: VictoriaPark, settings: str | Settings = CALIBRATED,
+                            observations: Observations | None = None,
+                            num_scans: int | None = None, progress=None,
+                            config: FilterConfig | None = None) -> VictoriaParkCalibration:
+    """The set's "calibrated" Params estimated from the log alone, GPS unused.
+
+    1. controls corrected by the set's steering bias (``steering_bias_of``, from the laser);
+    2. ``jaxslam.pipeline.filter_log(log, config, starting Params, key, calibrate=True)``
+       on the log as a ``RobotLog`` (``victoria_park_robot_log``): EM with the smoother
+       (``self_calibration.calibrate_params``) for the motion noise (Geiser et al. 2023,
+       Eq. 1, with its burst tail), range/bearing noise, max_range, miss_range, field of
+       view, detection / false-alarm probabilities and the gate, then one run with them;
+    3. ``radius_noise`` from the scatter of the detected radii within the trees of that
+       run's best particle (``radius_noise_from_history``).
+
+    Args: as ``run_victoria_park``; ``progress``: optional callable(str) for each EM step;
+    ``config``: the FilterConfig to calibrate with (default ``settings_config(settings)``).
+    """
+    from jaxslam.pipeline import filter_log
+
+    settings = _settings(settings)
+    config = settings_config(settings) if config is None else config
+    if observations is None:
+        log = victoria_park_log(data)
+        observations = detect_scans(log.scan_ranges, log.scan_angles, config.max_obs)
+    steps = _prefix(num_scans, data.laser_time.shape[0])
+    observations = _slice_obs(observations, steps)
+    bias = steering_bias_of(settings, data, observations)
+    robot_log = victoria_park_robot_log(data, observations, bias, steps)
+    start = time.perf_counter()
+    run = filter_log(robot_log, config, settings_params(settings, config), key,
+                     calibrate=settings.calibrate, smooth=False, progress=progress)
+    history = lineage.trace_lineage(run.trace.lineage, run.estimate.best_particle)
+    ids, _ = lineage.landmark_identities(history.match, history.birth_slot)
+    params = run.params
+    radius_noise, samples = radius_noise_from_history(ids, observations.radius,
+                                                      observations.valid)
+    if "radius_noise" in settings.calibrated and np.isfinite(radius_noise):
+        params = params._replace(radius_noise=jnp.asarray(radius_noise,
+                                                          params.radius_noise.dtype))
+    seconds = time.perf_counter() - start
+    return VictoriaParkCalibration(
+        params=params, info=run.calibration, radius_noise=radius_noise,
+        radius_samples=samples, steering_bias=bias, seconds=seconds, path=run.mean_pose,
+        num_trees=int(np.sum(np.asarray(run.estimate.active))), warnings=run.warnings)
 
 
 class VictoriaParkRun(NamedTuple):
@@ -521,40 +658,14 @@ def _run_one(config, key, params, controls, observations, smooth=False):
             state.particles.observation_count[best.best_particle], history)
 
 
-# Rounds of noise calibration in the smoother (``smoothing.smooth_path(calibrate_rounds)``).
-# The filter's noise is tuned for particle diversity, not for least squares: one round sets
-# the observation stds to ~0.35x / 0.45x (range / bearing) and loosens the moves'
-# translation ~3x. Whole log, P=100, 16 runs (keys fold_in(key(0), r)), smoothed GPS RMSE
-# median (max): 0 rounds 2.43 m (6.9), 1 round 2.04 m (6.6), 3 rounds 2.00 m (6.7) at ~2x the
-# time; the translation scale keeps growing with more rounds (3.3, 5.3, 7.6, ...: the moves'
-# translation errors are not white), so one round is kept. Online filter: 3.62 m (8.8).
-SMOOTH_CALIBRATE_ROUNDS = 1
-# Levenberg-Marquardt stops when a step lowers the cost by less than this fraction. With the
-# library's 1e-6 the calibrated solve ran into its 30-step cap, the last 20 steps each taking
-# off < 1e-5 of the cost. With 1e-4 it stops after 10 steps: on the 16 runs above (radius in
-# association), no run's GPS RMSE moved by more than 0.02 m (median 1.68 -> 1.67 m) and the
-# solve took ~7 s instead of ~10-14 s with a second job on the machine.
-SMOOTH_TOL = 1e-4
-# Loop closures revised in the smoother (``run_victoria_park(smooth_visit_gap=100)``, off by
-# default; measured before the trunk radius joined association, with the smoother's tol 1e-6): after the merged solve a landmark unseen for 100 scans (~20 s) starts a new visit,
-# and visits are tied by links of std 0.2 m whose Geman-McClure weight halves at 0.5 m.
-# Tuned on the 16 runs above (median / mean / max 2.04 / 2.37 / 6.64 m -> 2.16 / 2.07 /
-# 3.02 m), it did not carry over to the 100 Monte Carlo runs (keys fold_in(key(1), r)):
-# 73 runs better and 27 worse, mean 2.85 -> 2.77 m, 10% 1.58 -> 1.49 m, but median
-# 2.02 -> 2.10 m and 90% 3.92 -> 4.23 m, at twice the smoothing time (9.8 -> 21 s a run),
-# which takes a single run past the 30 s target. So it stays an option.
-SMOOTH_LINK_STD = 0.2
-SMOOTH_LINK_THRESHOLD = 2.5
-
-
 def _smooth(params, controls, observations, history: lineage.LineagePath,
-            visit_gap: int | None = None):
-    """``smoothing.smooth_lineage`` of one run from the origin (VP controls are odometry)."""
+            visit_gap: int | None = None, options: dict | None = None):
+    """``smoothing.smooth_lineage`` of one run from the origin (VP controls are odometry),
+    with the ``smooth_path`` keywords ``options`` (default: the legacy set's smoother)."""
+    options = smoother_options(LEGACY) if options is None else options
     return smoothing.smooth_lineage(np.zeros(3), jax.tree.map(np.asarray, history),
                                     np.asarray(controls), np.asarray(observations.z), params,
-                                    calibrate_rounds=SMOOTH_CALIBRATE_ROUNDS, tol=SMOOTH_TOL,
-                                    visit_gap=visit_gap, link_std=SMOOTH_LINK_STD,
-                                    link_threshold=SMOOTH_LINK_THRESHOLD)
+                                    visit_gap=visit_gap, **options)
 
 
 def _check_smoothing(smooth: bool, smooth_visit_gap):
@@ -570,10 +681,11 @@ def _check_smoothing(smooth: bool, smooth_visit_gap):
 def _run_inputs(data, config, params, observations, num_scans, dtype, steering_bias):
     """Defaults filled in and everything cut to the first T = ``num_scans`` scans:
     (config, params, controls (T, 3), observations with (T, K) leaves, the log, T)."""
-    if isinstance(steering_bias, str) and steering_bias != "laser":
+    if isinstance(steering_bias, str) and steering_bias not in ("laser", "constant"):
         raise ValueError(f"steering_bias={steering_bias!r}; expected 'laser' (the "
-                         "steering_bias_profile of these scans), a number [rad] or a (D,) "
-                         "array over the dead-reckoning samples")
+                         "steering_bias_profile of these scans), 'constant' (their "
+                         "steering_bias_from_scans), a number [rad] or a (D,) array over the "
+                         "dead-reckoning samples")
     config = victoria_park_config() if config is None else config
     params = victoria_park_params(config, dtype) if params is None else params
     log = victoria_park_log(data)
@@ -582,7 +694,9 @@ def _run_inputs(data, config, params, observations, num_scans, dtype, steering_b
         observations = detect_scans(log.scan_ranges[:steps], log.scan_angles, config.max_obs,
                                     dtype)
     observations = _slice_obs(observations, steps)
-    if isinstance(steering_bias, str):
+    if isinstance(steering_bias, str) and steering_bias == "constant":
+        steering_bias = steering_bias_from_scans(data, observations)[0]
+    elif isinstance(steering_bias, str):
         steering_bias = steering_bias_profile(data, observations)
     controls = jnp.asarray(victoria_park_controls(data, steering_bias)[:steps], dtype)
     return config, params, controls, observations, log, steps
@@ -594,24 +708,29 @@ def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = Non
                       dtype=jnp.float32,
                       steering_bias: float | np.ndarray | str = "laser",
                       smooth: bool = True,
-                      smooth_visit_gap: int | None = None) -> VictoriaParkRun:
+                      smooth_visit_gap: int | None = None,
+                      smoother: dict | None = None) -> VictoriaParkRun:
     """FastSLAM over the first ``num_scans`` scans (None: all 7,230) and its GPS score.
 
     Args:
       key: PRNG key (step t uses ``fold_in(key, t)``).
       data: ``load_victoria_park()``.
-      config / params: default ``victoria_park_config()`` / ``victoria_park_params(config)``.
+      config / params: default ``victoria_park_config()`` / ``victoria_park_params(config)``
+        (the "legacy" set; for the calibrated one pass ``calibrate_victoria_park``'s params).
       observations: detections with (T_all, K) leaves (default ``detect_scans`` of the log
         with K = config.max_obs); pass them to reuse one detection across runs.
       confirm_count: updates a landmark needs to count in ``num_confirmed``.
       steering_bias: added to the steering angle (``victoria_park_controls``): a number
-        [rad], a (D,) array over the dead-reckoning samples, or "laser" (default): the
-        ``steering_bias_profile`` of the first ``num_scans`` scans' detections.
+        [rad], a (D,) array over the dead-reckoning samples, "laser" (default): the
+        ``steering_bias_profile`` of the first ``num_scans`` scans' detections, or
+        "constant": their ``steering_bias_from_scans``.
       smooth: also re-solve the best particle's history (``smoothing``; the filter then
         records every particle's lineage, 64 MB for the whole log at P=100, K=18).
       smooth_visit_gap: None (default), or let the smoother revise the loop closures with
-        visits split at gaps of this many scans (``smoothing.smooth_path(visit_gap)``, links
-        ``SMOOTH_LINK_STD`` / ``SMOOTH_LINK_THRESHOLD``; 100 is the tested value).
+        visits split at gaps of this many scans (``smoothing.smooth_path(visit_gap)``; 100
+        is the tested value).
+      smoother: ``smoothing.smooth_path`` keywords (``smoother_options``; default the legacy
+        set's).
     """
     _check_smoothing(smooth, smooth_visit_gap)
     config, params, controls, observations, log, steps = _run_inputs(
@@ -624,7 +743,7 @@ def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = Non
     if smooth:
         start = time.perf_counter()
         smoothed = _smooth(params, controls, observations, outputs[6],
-                           smooth_visit_gap).path
+                           smooth_visit_gap, smoother).path
         smooth_s = time.perf_counter() - start
         smoothed_gps = _gps_score(log, smoothed, steps)
     return VictoriaParkRun(
@@ -716,15 +835,15 @@ def run_victoria_park_batch(key, data: VictoriaPark, num_runs: int,
                             steering_bias: float | np.ndarray | str = "laser",
                             smooth: bool = False, chunk: int = 20,
                             progress: bool = True,
-                            smooth_visit_gap: int | None = None) -> BatchRuns:
+                            smooth_visit_gap: int | None = None,
+                            smoother: dict | None = None) -> BatchRuns:
     """``num_runs`` Monte Carlo runs (run r uses key ``fold_in(key, r)``) in one compiled call.
 
     Arguments as ``run_victoria_park``. Memory grows as R * P * M; on this CPU pick P so
     R * P stays within a few thousand. With ``smooth`` the filter records every particle's
     lineage, so runs go ``chunk`` at a time through the compiled call (64 MB a run for the
     whole log at P=100), and each run's best history is then smoothed on the host (a tqdm
-    bar when ``progress``; ~5 s a run for the whole log on this CPU: 5.3 s measured alone
-    for the seed-0 run, 5.0 s a run over the 100-run study).
+    bar when ``progress``; ~5 s a run for the whole log with the legacy smoother settings).
     """
     if not isinstance(num_runs, (int, np.integer)) or num_runs < 1:
         raise ValueError(f"num_runs={num_runs!r} is invalid; expected a positive integer")
@@ -750,7 +869,7 @@ def run_victoria_park_batch(key, data: VictoriaPark, num_runs: int,
         smoothed = np.stack([
             _smooth(params, controls, observations,
                     jax.tree.map(lambda leaf, run=run: leaf[run], histories),
-                    smooth_visit_gap).path
+                    smooth_visit_gap, smoother).path
             for run in tqdm(range(num_runs), desc="smoothing runs", disable=not progress)])
         smooth_s = time.perf_counter() - start
         smoothed_rmse = np.array([_gps_score(log, path, steps).rmse for path in smoothed])
