@@ -14,6 +14,8 @@ its 95 % Wilson interval, the median final error, the landmarks per tree seen, a
 from __future__ import annotations
 
 import argparse
+import ast
+import dataclasses
 import itertools
 import sys
 import pathlib
@@ -26,17 +28,35 @@ import numpy as np
 from experiments.mixture_regime import regime_params
 from experiments.self_calibration import MAX_RANGE, SIZE, wobbly_loop
 from jaxslam.filter import make_filter, scan_filter
-from jaxslam.types import FilterConfig
+from jaxslam.geometry import compose, relative
+from jaxslam.types import FilterConfig, default_params
 from sims.forest import random_forest
 from sims.scenario import build_scenario
 
 CHI2_2DOF_95 = 5.991  # 95 % quantile of chi-square with 2 degrees of freedom
 PROPOSALS = {
     # The seed paper's FastSLAM: motion proposal, Gaussian prior, first pose sampled.
-    "motion": (dict(proposal="motion", anchor_empty_map=False), 0.0),
+    "motion": (dict(proposal="motion", anchor_empty_map=False),
+               dict(motion_outlier_probability=0.0)),
     # FilterConfig() as shipped (observation proposal with its flags and default bursts).
-    "default": ({}, None),
+    "default": ({}, {k: getattr(default_params(), k) for k in (
+        "motion_outlier_probability", "motion_outlier_scale")}),
 }
+
+
+def proposal_settings(name: str) -> tuple[dict, dict]:
+    """(FilterConfig fields, Params fields) of ``name``: a key of ``PROPOSALS``, optionally
+    followed by ``:field=value,...`` overrides (FilterConfig fields when FilterConfig has
+    them, else Params fields), e.g. ``default:motion_outlier_scale=16``."""
+    base, _, extra = name.partition(":")
+    if base not in PROPOSALS:
+        raise SystemExit(f"unknown proposal {base!r}; expected one of {sorted(PROPOSALS)}")
+    fields, param_fields = dict(PROPOSALS[base][0]), dict(PROPOSALS[base][1])
+    for pair in filter(None, extra.split(",")):
+        key, _, value = pair.partition("=")
+        target = fields if key in {f.name for f in dataclasses.fields(FilterConfig)} else param_fields
+        target[key] = ast.literal_eval(value)
+    return fields, param_fields
 
 
 def wilson(k: int, n: int, z: float = 1.96):
@@ -71,7 +91,9 @@ def make_logs(key, params, wobble: float, runs: int, forests: int):
 
 
 def run_point(config, params, key, controls, obs, truth, chunk: int):
-    """Final errors (R,), landmark counts (R,), compile [s] and run [s] of the vmapped filter."""
+    """Final errors (R,), landmark counts (R,), final position NEES (R,), the first-step floor
+    and the error with it removed (R,) each (``first_step_errors``), compile [s] and run [s]
+    of the vmapped filter."""
     filt = make_filter(config)
 
     def one(key, controls, obs, start, end):
@@ -79,7 +101,8 @@ def run_point(config, params, key, controls, obs, truth, chunk: int):
         final, trace = scan_filter(config, key, state, params, controls, obs)
         w = jax.nn.softmax(final.log_weight)
         count = jnp.sum(w * jnp.sum(final.particles.active, -1))
-        return trace.mean_pose[-1], count, position_nees(final.particles.pose, w, end)
+        return (trace.mean_pose[-1], count, position_nees(final.particles.pose, w, end),
+                trace.mean_pose[0])
 
     batched = jax.jit(jax.vmap(one))
     runs = controls.shape[0]
@@ -89,11 +112,11 @@ def run_point(config, params, key, controls, obs, truth, chunk: int):
     compiled = batched.lower(keys[sl], controls[sl], jax.tree.map(lambda a: a[sl], obs),
                              truth[sl, 0], truth[sl, -1]).compile()
     compile_s = time.perf_counter() - tick
-    finals, counts, nees, run_s = [], [], [], 0.0
+    finals, counts, nees, firsts, run_s = [], [], [], [], 0.0
     for lo in range(0, runs, chunk):
         sl = slice(lo, lo + chunk)
         tick = time.perf_counter()
-        final, count, run_nees = compiled(keys[sl], controls[sl],
+        final, count, run_nees, first = compiled(keys[sl], controls[sl],
                                           jax.tree.map(lambda a: a[sl], obs), truth[sl, 0],
                                           truth[sl, -1])
         jax.block_until_ready(final)
@@ -101,9 +124,42 @@ def run_point(config, params, key, controls, obs, truth, chunk: int):
         finals.append(np.asarray(final))
         counts.append(np.asarray(count))
         nees.append(np.asarray(run_nees))
+        firsts.append(np.asarray(first))
     final = np.concatenate(finals)
     error = np.hypot(*(final[:, :2] - truth[:, -1, :2]).T)
-    return error, np.concatenate(counts), np.concatenate(nees), compile_s, run_s
+    floor, removed = first_step_errors(np.concatenate(firsts), final, truth)
+    return (error, np.concatenate(counts), np.concatenate(nees), floor, removed, compile_s,
+            run_s)
+
+
+def longest_sparse_stretch(valid, most: int = 2):
+    """(R,) the longest run of consecutive steps of each log with at most ``most`` valid
+    observations (``valid`` (R, T, K)): where the map holds the pose only weakly."""
+    sparse = np.asarray(valid).sum(-1) <= most
+    longest = np.zeros(sparse.shape[0], int)
+    current = np.zeros(sparse.shape[0], int)
+    for column in sparse.T:
+        current = np.where(column, current + 1, 0)
+        longest = np.maximum(longest, current)
+    return longest
+
+
+def first_step_errors(first, final, truth):
+    """The part of the final error that the first step's pose error fixes, and the rest.
+
+    The map's frame is the first estimated pose e_1 (R, 3) (the weighted mean after step 1;
+    with ``anchor_empty_map`` every particle's, the motion mean): a perfect filter from there
+    ends at e_1 (+) (x_1^-1 (+) x_T), x_1, x_T the true poses. Returns that floor's final
+    position error (R,) and the filter's final error with the first-step error removed,
+    |x_1 (+) (e_1^-1 (+) final) - x_T| (R,) (for the motion proposal, whose particles start
+    from different poses, only the weighted mean's first-step error is removed).
+    """
+    first, final, true_first, true_final = (jnp.asarray(a) for a in (
+        first, final, truth[:, 1], truth[:, -1]))
+    perfect = compose(first, relative(true_first, true_final))
+    removed = compose(true_first, relative(first, final))
+    distance = lambda a: np.hypot(*np.asarray(a[:, :2] - true_final[:, :2]).T)
+    return distance(perfect), distance(removed)
 
 
 def position_nees(pose, weight, truth):
@@ -129,10 +185,12 @@ def main(argv=None):
     parser.add_argument("--particles", type=int, nargs="+", default=[20])
     parser.add_argument("--proposals", nargs="+", default=list(PROPOSALS))
     parser.add_argument("--out", default=None, help="markdown file for the table")
+    parser.add_argument("--errors", default=None,
+                        help=".npz file for the per-run final errors of every row")
     args = parser.parse_args(argv)
     if args.runs % args.forests or args.runs % min(args.chunk, args.runs):
         raise SystemExit("--runs must be a multiple of --forests and of --chunk")
-    rows = []
+    rows, per_run = [], {}
     for wobble, odometry in itertools.product(args.wobble, args.odometry):
         truth_params = regime_params(odometry, "lidar")
         key = jax.random.fold_in(jax.random.PRNGKey(args.seed), int(1000 * wobble + odometry))
@@ -142,12 +200,12 @@ def main(argv=None):
         print(f"wobble {wobble} m, odometry {odometry}x: {args.runs} logs in "
               f"{time.perf_counter() - tick:.0f} s", flush=True)
         for particles, name in itertools.product(args.particles, args.proposals):
-            fields, eps = PROPOSALS[name]
+            fields, param_fields = proposal_settings(name)
             config = FilterConfig(num_particles=particles, max_landmarks=96, max_obs=12,
                                   **fields)
-            params = truth_params if eps is None else truth_params._replace(
-                motion_outlier_probability=jnp.float32(eps))
-            error, count, nees, compile_s, run_s = run_point(
+            params = truth_params._replace(**{k: jnp.asarray(v, jnp.float32)
+                                              for k, v in param_fields.items()})
+            error, count, nees, floor, removed, compile_s, run_s = run_point(
                 config, params, jax.random.fold_in(key, 1), controls, obs, truth,
                 min(args.chunk, args.runs))
             diverged = int(np.sum(error > 1.0))
@@ -155,15 +213,23 @@ def main(argv=None):
             rate = args.runs * controls.shape[1] / run_s
             row = (f"| {wobble:g} | {odometry:g} | {particles} | {name} | {args.runs} | "
                    f"{100 * diverged / args.runs:.1f} % [{100 * low:.1f}, {100 * high:.1f}] | "
-                   f"{np.median(error):.3f} | {np.median(count / np.maximum(seen, 1)):.2f} | "
+                   f"{np.median(error):.3f} | {100 * np.mean(floor > 1.0):.1f} % | "
+                   f"{100 * np.mean(removed > 1.0):.1f} % | {np.median(removed):.3f} | "
+                   f"{np.median(count / np.maximum(seen, 1)):.2f} | "
                    f"{np.median(nees):.3g} | {100 * np.mean(nees <= CHI2_2DOF_95):.1f} % | "
                    f"{rate:.3g} | {compile_s:.1f} |")
             print(row, flush=True)
             rows.append(row)
+            per_run[f"{wobble:g}/{odometry:g}/{particles}/{name}"] = error
+            per_run[f"{wobble:g}/{odometry:g}/sparsest"] = longest_sparse_stretch(obs.valid)
+    if args.errors:
+        np.savez(args.errors, **per_run)
     table = ("| wobble [m] | odometry x Table 1 | P | proposal | runs | diverged [95 % CI] | "
-             "median final error [m] | landmarks / trees seen (median) | final position NEES "
-             "(median) | 95 % ellipse holds the truth | run-steps/s | "
-             "compile [s] |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows))
+             "median final error [m] | floor: first-step error alone > 1 m | diverged, "
+             "first-step error removed | median, first-step error removed [m] | landmarks / "
+             "trees seen (median) | final position NEES (median) | 95 % ellipse holds the "
+             "truth | run-steps/s | compile [s] |\n"
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows))
     print(table)
     if args.out:
         command = "python experiments/proposal_study.py " + " ".join(argv or sys.argv[1:])

@@ -434,7 +434,7 @@ def _propose(config, key, params, particles: Particles, control, obs, ratio, kee
                                                      found.local_match, found.predicted)
         pose, used_obs, piece = proposal.mixture_sample(k, motion_sample, gaussian, ratio)
         if config.burst_proposal:
-            found = jax.tree.map(lambda *leaves: jnp.stack(leaves)[piece], *found)
+            found = jax.tree.map(lambda leaf: leaf[piece], found)
         correction = proposal.mixture_log_correction(particle.pose, pose, control, params,
                                                      motion, gaussian, ratio)
         # The update and the weight use the association at the pose they are evaluated at:
@@ -453,30 +453,49 @@ def _propose(config, key, params, particles: Particles, control, obs, ratio, kee
 
 
 def _burst_pieces(config, params, particle: Particles, x_hat, control, obs):
-    """The two-piece proposal of a bursty motion prior (``FilterConfig.burst_proposal``).
+    """The pieces' proposal of a bursty motion prior (``FilterConfig.burst_proposal``).
 
     The prior (1 - eps) N(x_hat, Sigma) + eps N(x_hat, kappa^2 Sigma) gives two FastSLAM 2.0
     Gaussians, each with its own association at x_hat (the burst piece's wider matching
     covariance finds the landmarks a burst moved), mixed by prior mass x evidence
     (``proposal.piece_mixture``; an observation a piece leaves unmatched is credited the
-    new-landmark likelihood). Returns (``PieceMixture``, (core, burst) ``_Association``).
+    new-landmark likelihood). With ``burst_turn_pieces`` n > 0 the burst's mass is shared
+    half and half between its Gaussian and the 2n + 1 turn pieces of ``proposal.turn_pieces``,
+    each associated and linearised at its own centre. Returns (``PieceMixture``, the pieces'
+    ``_Association`` stacked on a leading (J,) axis).
     """
     motion = config.motion_model
-    pieces, founds = [], []
-    for factor in (1.0, params.motion_outlier_scale**2):
-        cov = proposal.motion_pose_covariance(particle.pose, control, params, motion, factor)
-        found = _associate(config, params, particle, x_hat, obs,
+
+    def piece(centre, cov):
+        found = _associate(config, params, particle, centre, obs,
                            cov if config.match_pose_uncertainty else None)
-        gaussian = proposal.observation_proposal(x_hat, cov, obs.z, found.local_match,
+        gaussian = proposal.observation_proposal(centre, cov, obs.z, found.local_match,
                                                  found.predicted)
         unexplained = jnp.sum(jnp.where(obs.valid & (found.match < 0),
                                         ekf.unexplained_log_likelihood(obs.z[:, 0], params),
                                         0.0))
-        pieces.append(gaussian._replace(log_evidence=gaussian.log_evidence + unexplained))
-        founds.append(found)
+        return gaussian._replace(log_evidence=gaussian.log_evidence + unexplained), found
+
+    pieces = [piece(x_hat, proposal.motion_pose_covariance(particle.pose, control, params,
+                                                           motion, factor))
+              for factor in (1.0, params.motion_outlier_scale**2)]
     eps = params.motion_outlier_probability
-    log_prior = jnp.stack([jnp.log1p(-eps), jnp.log(jnp.maximum(eps, 0.0))])
-    return proposal.piece_mixture(pieces, log_prior), tuple(founds)
+    log_burst = jnp.log(jnp.maximum(eps, 0.0))
+    log_prior = jnp.stack([jnp.log1p(-eps), log_burst])
+    stack = lambda *leaves: jnp.stack(leaves)
+    gaussians = jax.tree.map(stack, *[g for g, _ in pieces])
+    founds = jax.tree.map(stack, *[f for _, f in pieces])
+    if config.burst_turn_pieces > 0:
+        centres, covs, log_mass = proposal.turn_pieces(
+            particle.pose, control, params, motion, config.burst_turn_pieces,
+            config.burst_turn_span)
+        turn_gaussians, turn_founds = jax.vmap(piece)(centres, covs)
+        concat = lambda a, b: jnp.concatenate([a, b])
+        gaussians = jax.tree.map(concat, gaussians, turn_gaussians)
+        founds = jax.tree.map(concat, founds, turn_founds)
+        half = log_burst + jnp.log(0.5)
+        log_prior = jnp.concatenate([jnp.stack([log_prior[0], half]), half + log_mass])
+    return proposal.piece_mixture(gaussians, log_prior), founds
 
 
 def _mixture_ratio(config, params, state):

@@ -31,8 +31,8 @@ import jax.numpy as jnp
 
 from jaxslam.ekf import PredictedMeasurement
 from jaxslam.geometry import LOG_2PI, wrap_angle
-from jaxslam.motion import (burst_variance_factor, control_to_odometry, motion_log_density,
-                            odometry_std, predict_pose)
+from jaxslam.motion import (apply_odometry, burst_variance_factor, control_to_odometry,
+                            motion_log_density, odometry_std, predict_pose)
 from jaxslam.types import Params
 
 # Sigma_u is singular for a pure turn and badly conditioned for a short move; the jitter added
@@ -82,7 +82,12 @@ def motion_pose_covariance(pose, control, params: Params, motion_model: str,
     """
     odometry = control_to_odometry(control, params, motion_model)
     factor = burst_variance_factor(params) if variance_factor is None else variance_factor
-    variance = odometry_std(odometry, params) ** 2 * factor
+    return odometry_pose_covariance(pose, odometry, odometry_std(odometry, params) ** 2 * factor)
+
+
+def odometry_pose_covariance(pose, odometry, variance):
+    """J diag(variance) J^T + jitter (3, 3) of the move ``odometry`` (3,) from ``pose`` (3,),
+    ``variance`` (3,) of (rot1, trans, rot2) (``motion_pose_covariance``)."""
     heading = pose[2] + odometry[0]
     trans = odometry[1]
     zero = jnp.zeros_like(trans)
@@ -91,6 +96,34 @@ def motion_pose_covariance(pose, control, params: Params, motion_model: str,
                      [1.0 + zero, zero, 1.0 + zero]])
     cov = (jac * variance[None, :]) @ jac.T
     return cov + pose_jitter(cov) * jnp.eye(3, dtype=pose.dtype)
+
+
+def turn_pieces(pose, control, params: Params, motion_model: str, num_side: int,
+                span: float):
+    """The burst's first turn split into J = 2n + 1 Gaussian pieces (``burst_turn_pieces``).
+
+    The burst moves by (rot1, trans, rot2) + kappa sigma * N(0, I). Its first turn is
+    replaced by sum_j w_j N(c_j, h^2) with c_j = j h, h = span tau / n, tau = kappa sigma_rot1,
+    w_j proportional to exp(-c_j^2 / (2 tau^2)) (the burst's density at c_j); translation and
+    second turn keep the core std. Piece j's centre is the odometry move with c_j added to
+    rot1 and its covariance J_j diag(h^2, sigma_trans^2, sigma_rot2^2) J_j^T at that centre, so
+    a piece far out along the turn is linearised where it lies.
+
+    Args: pose (3,); control (3,); n = ``num_side`` > 0; ``span`` > 0.
+    Returns: (centres (J, 3), covariances (J, 3, 3), log masses (J,), normalised over J).
+    """
+    odometry = control_to_odometry(control, params, motion_model)
+    std = odometry_std(odometry, params)
+    tau = params.motion_outlier_scale * std[0]
+    step = span * tau / num_side
+    offsets = step * jnp.arange(-num_side, num_side + 1, dtype=pose.dtype)
+    moves = odometry[None, :] + jnp.stack(
+        [offsets, jnp.zeros_like(offsets), jnp.zeros_like(offsets)], -1)
+    variance = jnp.stack([step**2, std[1] ** 2, std[2] ** 2])
+    centres = jax.vmap(lambda move: apply_odometry(pose, move))(moves)
+    covs = jax.vmap(lambda move: odometry_pose_covariance(pose, move, variance))(moves)
+    log_mass = jax.nn.log_softmax(-0.5 * (offsets / jnp.maximum(tau, 1e-30)) ** 2)
+    return centres, covs, log_mass
 
 
 def pose_jitter(cov):
@@ -136,7 +169,15 @@ def observation_proposal(predicted_pose, pose_cov, z, match, predicted: Predicte
     return ObservationProposal(mean, jnp.linalg.cholesky(cov), jnp.any(matched), log_evidence)
 
 
-def piece_mixture(pieces: list, log_prior) -> PieceMixture:
+def stack_proposals(pieces) -> ObservationProposal:
+    """J ``ObservationProposal`` as one with a leading (J,) axis on every field; an
+    ``ObservationProposal`` whose fields already have that axis passes through."""
+    if isinstance(pieces, ObservationProposal):
+        return pieces
+    return jax.tree.map(lambda *leaves: jnp.stack(leaves), *pieces)
+
+
+def piece_mixture(pieces, log_prior) -> PieceMixture:
     """Proposals of the J motion-prior pieces mixed by prior mass x linearised evidence.
 
     For a motion prior sum_j pi_j N(x; x_hat, Sigma_j), the linearised optimal proposal is
@@ -146,14 +187,15 @@ def piece_mixture(pieces: list, log_prior) -> PieceMixture:
     the caller adds it).
 
     Args:
-      pieces: J ``ObservationProposal`` (their ``log_evidence`` set).
+      pieces: J ``ObservationProposal`` (their ``log_evidence`` set), as a list or stacked
+        with a leading (J,) axis (``stack_proposals``).
       log_prior: (J,) log pi_j (-inf for a piece of mass 0).
     """
-    logits = jnp.asarray(log_prior) + jnp.stack([q.log_evidence for q in pieces])
-    logits = jnp.where(jnp.stack([q.has_match for q in pieces]), logits, jnp.asarray(log_prior))
-    return PieceMixture(jnp.stack([q.mean for q in pieces]), jnp.stack([q.chol for q in pieces]),
-                        jax.nn.log_softmax(logits),
-                        jnp.any(jnp.stack([q.has_match for q in pieces])))
+    stacked = stack_proposals(pieces)
+    logits = jnp.asarray(log_prior) + stacked.log_evidence
+    logits = jnp.where(stacked.has_match, logits, jnp.asarray(log_prior))
+    return PieceMixture(stacked.mean, stacked.chol, jax.nn.log_softmax(logits),
+                        jnp.any(stacked.has_match))
 
 
 def piece_mixture_log_density(pose, mixture: PieceMixture):
@@ -257,5 +299,7 @@ __all__ = [
     "observation_proposal",
     "predict_pose",
     "sample_gaussian_pose",
+    "stack_proposals",
+    "turn_pieces",
     "update_likelihood_averages",
 ]

@@ -95,6 +95,12 @@ class FilterConfig:
         Gaussians of the prior's core and burst pieces, mixed by prior mass x evidence
         (``filter._burst_pieces``). False uses one Gaussian with the mixture's covariance.
         Costs a second association and proposal per particle.
+      burst_turn_pieces: n >= 0. With ``burst_proposal``, n > 0 adds 2n + 1 pieces that split
+        the burst's first turn into Gaussians at offsets c_j = j (span/n) tau, j = -n..n
+        (tau = kappa sigma_rot1; ``proposal.turn_pieces``), each linearised and associated at
+        its own pose, so a turn far larger than the measured one is still proposed where the
+        observations put it. Costs 2n + 1 more associations and proposals per particle.
+      burst_turn_span: the pieces cover +-span tau (in burst standard deviations).
     """
 
     num_particles: int = 100
@@ -112,6 +118,8 @@ class FilterConfig:
     anchor_empty_map: bool = True
     associate_at_sample: bool = True
     burst_proposal: bool = True
+    burst_turn_pieces: int = 0
+    burst_turn_span: float = 4.0
 
     def __post_init__(self):
         for name in ("num_particles", "max_landmarks", "max_obs"):
@@ -127,6 +135,17 @@ class FilterConfig:
             raise ValueError(
                 f"FilterConfig.association_window={self.association_window!r} is invalid; "
                 "expected an integer >= 0 (0 means every landmark slot)")
+        if (not isinstance(self.burst_turn_pieces, (int, np.integer))
+                or isinstance(self.burst_turn_pieces, bool) or self.burst_turn_pieces < 0):
+            raise ValueError(
+                f"FilterConfig.burst_turn_pieces={self.burst_turn_pieces!r} is invalid; "
+                "expected an integer >= 0 (0: no turn pieces)")
+        if (isinstance(self.burst_turn_span, bool)
+                or not isinstance(self.burst_turn_span, (int, float, np.floating))
+                or not self.burst_turn_span > 0 or not np.isfinite(self.burst_turn_span)):
+            raise ValueError(
+                f"FilterConfig.burst_turn_span={self.burst_turn_span!r} is invalid; "
+                "expected a finite number > 0 (burst standard deviations)")
         for name in ("match_pose_uncertainty", "anchor_empty_map", "associate_at_sample",
                      "burst_proposal"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
@@ -180,7 +199,7 @@ class Params(NamedTuple):
         where both radii are known then have a third degree of freedom, so raise
         ``association_gate`` to match (chi-square 3 dof: 99.9 % 16.27 where 2 dof give 13.82;
         the default 25 becomes ~28); as the radius keeps wrong neighbours out, a wider gate
-        may pay (Victoria Park: 13.8 without radii, 25 with them; ``victoria_park_slam``).
+        may pay (Victoria Park: 13.8 without radii, 25 with them, GPS-tuned: docs/results.md).
         The same gate applies to pairs with an unknown radius (position only) and to the
         airlock's position tests. Default 0: radii are only averaged into
         ``Particles.landmark_radius``.
