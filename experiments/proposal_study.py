@@ -197,6 +197,7 @@ def main(argv=None):
         tick = time.perf_counter()
         controls, obs, truth, seen = make_logs(key, truth_params, wobble, args.runs,
                                                args.forests)
+        per_run[f"{wobble:g}/{odometry:g}/sparsest"] = longest_sparse_stretch(obs.valid)
         print(f"wobble {wobble} m, odometry {odometry}x: {args.runs} logs in "
               f"{time.perf_counter() - tick:.0f} s", flush=True)
         for particles, name in itertools.product(args.particles, args.proposals):
@@ -221,7 +222,6 @@ def main(argv=None):
             print(row, flush=True)
             rows.append(row)
             per_run[f"{wobble:g}/{odometry:g}/{particles}/{name}"] = error
-            per_run[f"{wobble:g}/{odometry:g}/sparsest"] = longest_sparse_stretch(obs.valid)
     if args.errors:
         np.savez(args.errors, **per_run)
     table = ("| wobble [m] | odometry x Table 1 | P | proposal | runs | diverged [95 % CI] | "

@@ -482,9 +482,8 @@ def _burst_pieces(config, params, particle: Particles, x_hat, control, obs):
     eps = params.motion_outlier_probability
     log_burst = jnp.log(jnp.maximum(eps, 0.0))
     log_prior = jnp.stack([jnp.log1p(-eps), log_burst])
-    stack = lambda *leaves: jnp.stack(leaves)
-    gaussians = jax.tree.map(stack, *[g for g, _ in pieces])
-    founds = jax.tree.map(stack, *[f for _, f in pieces])
+    gaussians = proposal.stack_proposals([g for g, _ in pieces])
+    founds = jax.tree.map(lambda *leaves: jnp.stack(leaves), *[f for _, f in pieces])
     if config.burst_turn_pieces > 0:
         centres, covs, log_mass = proposal.turn_pieces(
             particle.pose, control, params, motion, config.burst_turn_pieces,
