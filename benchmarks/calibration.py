@@ -59,17 +59,18 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 from jaxslam import self_calibration, smoothing  # noqa: E402
 from jaxslam.filter import run_filter  # noqa: E402
 from jaxslam.self_calibration import calibrate_params, starting_params  # noqa: E402
+from jaxslam.smoothing import solver  # noqa: E402
 from jaxslam.types import FilterConfig  # noqa: E402
 
 # (module, function, label): the stages ``--stages`` times; nested ones are indented.
 STAGES = ((self_calibration, "run_filter", "filter runs"),
           (self_calibration, "_best_history", "best particle's history"),
           (smoothing, "smooth_path", "smoother"),
-          (smoothing, "_levenberg_marquardt", "  Levenberg-Marquardt solves"),
-          (smoothing, "_variance_factors", "  variance components"),
-          (self_calibration, "_motion_update", "motion noise fit"),
-          (self_calibration, "_observation_update", "observation noise fit"),
-          (self_calibration, "_sensor_update", "sensor fit"))
+          (solver, "levenberg_marquardt", "  Levenberg-Marquardt solves"),
+          (solver, "variance_factors", "  variance components"),
+          (self_calibration, "motion_noise_update", "motion noise fit"),
+          (self_calibration, "observation_noise_update", "observation noise fit"),
+          (self_calibration, "sensor_update", "sensor fit"))
 
 
 def _time(function):

@@ -18,7 +18,7 @@ import jax
 import numpy as np
 
 from jaxslam import metrics, pipeline
-from jaxslam.datasets.log_format import odometry_path
+from jaxslam.datasets.odometry import odometry_path
 from jaxslam.datasets.mrclam import load_mrclam
 from jaxslam.types import FilterConfig
 

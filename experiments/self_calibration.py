@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxslam import metrics
-from jaxslam.datasets.log_format import odometry_path
+from jaxslam.datasets.odometry import odometry_path
 from jaxslam.filter import estimate, run_filter
 from jaxslam.self_calibration import calibrate_params, starting_params
 from jaxslam.types import FilterConfig, default_params

@@ -41,18 +41,20 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from jaxslam import lineage, smoothing
-from jaxslam.datasets.log_format import VICTORIA_PARK_VEHICLE, body_rates, integrate_controls
+from jaxslam.host import in_float64
+from jaxslam.datasets.odometry import VICTORIA_PARK_VEHICLE, body_rates, integrate_controls
 from jaxslam.datasets.victoria_park import (
     VP_MIN_TRANSLATION,
     VictoriaPark,
     filter_gps,
     gps_error,
-    rigid_align_2d,
     rigid_transform_2d,
     victoria_park_log,
 )
 from jaxslam.detect import detect_trunks
 from jaxslam.filter import estimate, run_filter
+from jaxslam.metrics import align_se2
+from jaxslam.noise_fit import radius_noise_from_history
 from jaxslam.types import FilterConfig, Observations, Params, default_params
 
 # The classic detector's figures (dataset README, "Known figures"): beams under 75 m, segments
@@ -263,7 +265,8 @@ def scan_rotations(observations: Observations, match_radius: float = 1.5,
         if pair.sum() < min_pairs:
             continue
         source, target = before[pair], after[nearest[pair]]
-        angle, shift = rigid_align_2d(source, target)
+        alignment = in_float64(align_se2, source, target)  # (x, y, angle)
+        angle, shift = alignment[2], alignment[:2]
         residual = target - rigid_transform_2d(source, angle, shift)
         if np.sqrt(np.mean(np.sum(residual ** 2, -1))) <= max_residual:
             turns[t] = -angle  # the scene turns by -d when the vehicle turns by d
@@ -499,33 +502,6 @@ def victoria_park_robot_log(data: VictoriaPark, observations: Observations, stee
                         obs_z=np.asarray(obs.z, np.float64), obs_valid=np.asarray(obs.valid),
                         obs_radius=np.asarray(obs.radius, np.float64), scan_ranges=None,
                         scan_angles=None)
-
-
-def radius_noise_from_history(ids, radius, valid, min_sightings: int = 3) -> tuple[float, int]:
-    """Std [m] of one detected trunk radius from the scatter within each tree, no GPS.
-
-    ids: (T, K) landmark identity of each observation along one particle's history
-    (``lineage.landmark_identities``; -1: none); radius: (T, K) detected radii; valid:
-    (T, K). Over the landmarks with at least ``min_sightings`` sightings, the deviations
-    e = r - median_j(r) of each radius from its tree's median are pooled and
-    std = 1.4826 median |e| (the median absolute deviation: robust to the few wrong
-    associations, which would widen a plain std). Returns (std, observations used);
-    (nan, 0) when no landmark was seen often enough.
-    """
-    ids = np.where(np.asarray(valid, bool), np.asarray(ids), -1).ravel()
-    radius = np.asarray(radius, np.float64).ravel()
-    keep = ids >= 0
-    ids, radius = ids[keep], radius[keep]
-    if ids.size == 0:
-        return float("nan"), 0
-    labels, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
-    often = counts[inverse] >= min_sightings
-    if not often.any():
-        return float("nan"), 0
-    medians = np.array([np.median(radius[inverse == j]) if counts[j] >= min_sightings
-                        else np.nan for j in range(labels.size)])
-    deviation = radius[often] - medians[inverse[often]]
-    return float(1.4826 * np.median(np.abs(deviation))), int(often.sum())
 
 
 class VictoriaParkCalibration(NamedTuple):

@@ -25,7 +25,7 @@ _PUBLIC = {
     "Filter": "jaxslam.filter",
     "StepInfo": "jaxslam.filter",
     "stable_match": "jaxslam.association",
-    "Lineage": "jaxslam.filter",
+    "Lineage": "jaxslam.lineage",
     "trace_lineage": "jaxslam.lineage",
     "smooth_lineage": "jaxslam.smoothing",
     "smooth_path": "jaxslam.smoothing",

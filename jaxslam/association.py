@@ -318,6 +318,46 @@ def known_id_cost(obs_ids, slot_ids, active) -> jax.Array:
     return jnp.where(same, 0.0, jnp.inf).astype(jnp.float32)
 
 
+def known_id_births(candidates, obs_ids, slot_ids, active) -> jax.Array:
+    """Births by simulation truth: a tree already in the map is never born twice.
+
+    Observation k creates a landmark when it is a candidate, its id is known
+    (``obs_ids[k] >= 0``) and no active slot holds that id, even one outside the matchable
+    region (a landmark beyond the boundary would otherwise get a twin).
+
+    Args:
+      candidates: (K,) bool observations that would create a landmark (usable, unmatched).
+      obs_ids: (K,) int true-tree id of each observation; < 0 for unknown or padding.
+      slot_ids: (M,) int true-tree id recorded in each landmark slot.
+      active: (M,) bool slot holds a landmark.
+
+    Returns:
+      (K,) bool, ``candidates & (obs_ids >= 0) & ~any_m(active[m] & slot_ids[m] == obs_ids)``.
+    """
+    in_map = jnp.any(active[None, :] & (slot_ids[None, :] == obs_ids[:, None]), axis=1)
+    return candidates & (obs_ids >= 0) & ~in_map
+
+
+def birth_candidates(kind: str, candidates, obs_ids, slot_ids, active) -> jax.Array:
+    """(K,) bool observations allowed to create a landmark under association ``kind``:
+    ``known_id_births`` for ``known``, ``candidates`` unchanged otherwise. Shapes as in
+    ``known_id_births``."""
+    if kind == "known":
+        return known_id_births(candidates, obs_ids, slot_ids, active)
+    return candidates
+
+
+def association_cost(kind: str, distance, allowed, obs_ids, slot_ids, active) -> jax.Array:
+    """(K, M) cost the matcher of ``kind`` sees: ``distance`` (K, M) where ``allowed``
+    (K, M) bool, +inf elsewhere; for ``known``, 0 where allowed and the ids agree
+    (``known_id_cost``), +inf elsewhere. ``obs_ids`` (K,), ``slot_ids`` (M,), ``active``
+    (M,) are only read for ``known``."""
+    if kind == "known":
+        same = known_id_cost(obs_ids, slot_ids, active)
+        return jnp.where(allowed & jnp.isfinite(same), 0.0, jnp.inf)
+    return jnp.where(allowed, distance, jnp.inf)
+
+
 def match(kind: str, cost, gate, max_rounds=None) -> tuple[jax.Array, jax.Array]:
     """Dispatches on the static association ``kind`` (``FilterConfig.association``).
 

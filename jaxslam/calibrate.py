@@ -39,11 +39,7 @@ Procedure (one error component at a time, ``fit_noise``):
      Three rounds: refit on the kept groups, re-judge all used groups against the refit.
   7. The final non-negative fit on the kept groups.
 
-The non-negative least squares (``fit_nonnegative``) is solved with optax: projected gradient
-descent with Nesterov momentum on column-normalised features (SGD step, then projection on the
-non-negative orthant, ``optax.projections.projection_non_negative``), then an active-set polish:
-the weighted least squares restricted to the positive coefficients, accepted where it stays
-non-negative. Tests check it against ``scipy.optimize.nnls``.
+The non-negative least squares of steps 5-7 is ``nonnegative.fit_nonnegative`` (optax).
 
 Shapes: S samples, G groups, F features (3 for motion, 2 for observations).
 """
@@ -55,14 +51,14 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from jaxslam.geometry import wrap_angle
+from jaxslam.nonnegative import fit_nonnegative
 from jaxslam.types import Params
 
-_GROUP_ROUNDS = 3  # fit / re-judge rounds of the group outlier rule (step 6)
-_TINY = 1e-12  # floor of a fitted std before its log
-_MAD_TO_STD = 1.4826  # 1 / Phi^-1(3/4): MAD of a Gaussian times this is its std
+GROUP_ROUNDS = 3  # fit / re-judge rounds of the group outlier rule (step 6)
+TINY = 1e-12  # floor of a fitted std before its log
+MAD_TO_STD = 1.4826  # 1 / Phi^-1(3/4): MAD of a Gaussian times this is its std
 
 
 class GroupStats(NamedTuple):
@@ -115,61 +111,6 @@ class ObservationNoiseFit(NamedTuple):
 
 
 # ---------------------------------------------------------------------------------------------
-# Non-negative least squares with optax
-
-
-def _polish(design, target, weight, coefficients):
-    """Weighted LS restricted to the positive coefficients (inactive ones fixed at 0)."""
-    active = coefficients > 0.0
-    masked = design * active[None, :]
-    gram = masked.T @ (weight[:, None] * masked)
-    gram = gram + jnp.diag(jnp.where(active, 0.0, 1.0))
-    solution = jnp.linalg.solve(gram, masked.T @ (weight * target))
-    solution = jnp.where(active, solution, 0.0)
-    ok = jnp.all(solution >= 0.0) & jnp.all(jnp.isfinite(solution))
-    return jnp.where(ok, solution, coefficients)
-
-
-@functools.partial(jax.jit, static_argnames=("num_steps", "polish"))
-def fit_nonnegative(design, target, weight, num_steps: int = 3000, polish: bool = True):
-    """argmin_{c >= 0} sum_g w_g (design_g . c - target_g)^2, solved with optax.
-
-    Projected gradient descent (``optax.sgd`` with Nesterov momentum 0.9, step 1/L with L the
-    Lipschitz constant of the normalised problem, projection onto c >= 0 after every step)
-    on columns scaled to unit weighted norm; then the active-set polish (module docstring).
-
-    Args:
-      design: (G, F) features of each group; target: (G,) group stds; weight: (G,) >= 0
-        (0 drops a group).
-    Returns:
-      (F,) non-negative coefficients.
-    """
-    weight = weight / jnp.maximum(jnp.sum(weight), 1e-300)
-    scale = jnp.sqrt(jnp.sum(weight[:, None] * design**2, axis=0))
-    scale = jnp.where(scale > 0.0, scale, 1.0)
-    scaled = design / scale[None, :]
-    gram = scaled.T @ (weight[:, None] * scaled)
-    lipschitz = 2.0 * jnp.maximum(jnp.max(jnp.linalg.eigvalsh(gram)), 1e-300)
-    optimizer = optax.sgd(1.0 / lipschitz, momentum=0.9, nesterov=True)
-
-    def loss(params):
-        residual = scaled @ params - target
-        return jnp.sum(weight * residual**2)
-
-    def step(carry, _):
-        params, opt_state = carry
-        updates, opt_state = optimizer.update(jax.grad(loss)(params), opt_state, params)
-        params = optax.projections.projection_non_negative(optax.apply_updates(params, updates))
-        return (params, opt_state), None
-
-    start = jnp.zeros(design.shape[1], design.dtype)
-    (solution, _), _ = jax.lax.scan(step, (start, optimizer.init(start)), None, num_steps)
-    if polish:
-        solution = _polish(scaled, target, weight, solution)
-    return solution / scale
-
-
-# ---------------------------------------------------------------------------------------------
 # Grouping and per-group maximum likelihood
 
 
@@ -217,7 +158,7 @@ def group_stats(features, errors, group, valid, num_groups: int, estimate_mean: 
               else jnp.zeros(num_groups, errors.dtype))
     centre_of = jnp.append(centre, 0.0)[group]
     deviation = jnp.abs(errors - centre_of)
-    robust_std = _MAD_TO_STD * _segment_median(deviation, group, num_groups)
+    robust_std = MAD_TO_STD * _segment_median(deviation, group, num_groups)
     keep = valid & (deviation <= _limit(sample_threshold, jnp.append(robust_std, 0.0)[group]))
     kept_group = jnp.where(keep, group, num_groups)
 
@@ -241,7 +182,7 @@ def _robust_keep(score, usable, threshold, floor=0.0):
     floor)."""
     masked = jnp.where(usable, score, jnp.nan)
     median = jnp.nanmedian(masked)
-    spread = _MAD_TO_STD * jnp.nanmedian(jnp.abs(masked - median))
+    spread = MAD_TO_STD * jnp.nanmedian(jnp.abs(masked - median))
     return usable & (jnp.abs(score - median) <= jnp.maximum(_limit(threshold, spread), floor))
 
 
@@ -262,7 +203,7 @@ def _fit_noise(features, errors, group, valid, num_groups, estimate_mean, sample
     def refine(kept, _):
         coefficients = fit_nonnegative(stats.features, stats.std, jnp.where(kept, count, 0.0),
                                        num_steps)
-        fitted = jnp.maximum(stats.features @ coefficients, _TINY)
+        fitted = jnp.maximum(stats.features @ coefficients, TINY)
         score = jnp.log(safe_std) - jnp.log(fitted)
         new_kept = _robust_keep(score, used & (stats.std > 0.0), group_threshold,
                                 jnp.log(min_group_ratio))
@@ -270,7 +211,7 @@ def _fit_noise(features, errors, group, valid, num_groups, estimate_mean, sample
 
     # The first fit sees the outlier groups and is pulled towards them, so good groups can
     # look bad against it: re-judge every used group against the refit, a few times.
-    kept, _ = jax.lax.scan(refine, used, None, _GROUP_ROUNDS)
+    kept, _ = jax.lax.scan(refine, used, None, GROUP_ROUNDS)
     final = fit_nonnegative(stats.features, stats.std, jnp.where(kept, count, 0.0), num_steps)
     return NoiseFit(final, stats, used, kept)
 
@@ -333,12 +274,16 @@ def _check_finite(name, values, valid):
 # Motion and observation front ends
 
 
-def _check_pairs(name, true, measured, width):
+def _check_pairs(name, true, measured, width, valid):
+    """(true, measured, valid) as JAX arrays after the shape and finiteness checks."""
     true, measured = jnp.asarray(true), jnp.asarray(measured)
     if true.ndim != 2 or true.shape[1] != width or true.shape != measured.shape:
         raise ValueError(f"{name} expects true and measured arrays of shape (S, {width}); got "
                          f"{true.shape} and {measured.shape}")
-    return true, measured
+    valid = jnp.ones(true.shape[:1], bool) if valid is None else jnp.asarray(valid, bool)
+    _check_finite("true", true, valid[:, None])
+    _check_finite("measured", measured, valid[:, None])
+    return true, measured, valid
 
 
 def motion_samples(true_moves, measured_moves):
@@ -374,10 +319,8 @@ def fit_motion_noise(true_moves, measured_moves, valid=None, *, trans_bins: int 
     Each component is grouped on a ``trans_bins`` x ``rot_bins`` grid of quantile bins of its
     own (|trans|, |rot|) features; ``kwargs`` go to ``fit_noise``.
     """
-    true_moves, measured_moves = _check_pairs("fit_motion_noise", true_moves, measured_moves, 3)
-    valid = jnp.ones(true_moves.shape[:1], bool) if valid is None else jnp.asarray(valid, bool)
-    _check_finite("true_moves", true_moves, valid[:, None])
-    _check_finite("measured_moves", measured_moves, valid[:, None])
+    true_moves, measured_moves, valid = _check_pairs("fit_motion_noise", true_moves,
+                                                     measured_moves, 3, valid)
     errors, features, groups = _motion_groups(true_moves, measured_moves, valid, trans_bins,
                                               rot_bins)
     fits = [fit_noise(features[i], errors[:, i], groups[i], trans_bins * rot_bins, valid,
@@ -388,10 +331,8 @@ def fit_motion_noise(true_moves, measured_moves, valid=None, *, trans_bins: int 
 def fit_observation_noise(true_z, measured_z, valid=None, *, distance_bins: int = 12,
                           **kwargs) -> ObservationNoiseFit:
     """Table 2 from S (range, bearing) pairs, each (S, 2); std against the measured range."""
-    true_z, measured_z = _check_pairs("fit_observation_noise", true_z, measured_z, 2)
-    valid = jnp.ones(true_z.shape[:1], bool) if valid is None else jnp.asarray(valid, bool)
-    _check_finite("true_z", true_z, valid[:, None])
-    _check_finite("measured_z", measured_z, valid[:, None])
+    true_z, measured_z, valid = _check_pairs("fit_observation_noise", true_z, measured_z, 2,
+                                             valid)
     errors, features, group = _observation_groups(true_z, measured_z, valid, distance_bins)
     return ObservationNoiseFit(*(fit_noise(features, errors[:, i], group, distance_bins, valid,
                                            **kwargs) for i in range(2)))

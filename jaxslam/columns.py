@@ -8,8 +8,9 @@ defined in docs/metrics.md.
 
 _COUNT, _NONE = "count", "-"
 # Unit of every study config key ("section.key"; "-" for names, choices, flags, factors).
-# Params units follow the Params docstring (jaxslam/types.py); vector fields name one unit per
-# component. tests/test_cli_ux.py checks that every key of the config and of Params is here.
+# Params units follow the Params docstring (jaxslam/types/params.py); vector fields name one
+# unit per component. tests/test_cli_ux.py checks that every key of the config and of Params is
+# here.
 CONFIG_UNITS = {
     "name": _NONE, "num_runs": _COUNT, "chunk_size": _COUNT, "run_width": _COUNT,
     "seed": _NONE, "divergence_threshold": "m", "map_match_threshold": "m",

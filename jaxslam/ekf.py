@@ -122,6 +122,14 @@ def add_pose_uncertainty(predicted: PredictedMeasurement, pose_cov):
                       log_det=log_det)
 
 
+def innovation_mahalanobis_sq(d_range, d_bearing, i_rr, i_rb, i_bb):
+    """Squared Mahalanobis distance nu^T S^-1 nu of innovations nu = (d_range, d_bearing)
+    (bearing already wrapped) with S^-1 = [[i_rr, i_rb], [i_rb, i_bb]]; all arguments
+    broadcast together, elementwise."""
+    return (d_range * d_range * i_rr + 2.0 * d_range * d_bearing * i_rb
+            + d_bearing * d_bearing * i_bb)
+
+
 def mahalanobis_sq(z, predicted: PredictedMeasurement):
     """Squared Mahalanobis distance d2[k, m] of observation k under landmark m's prediction.
 
@@ -129,9 +137,8 @@ def mahalanobis_sq(z, predicted: PredictedMeasurement):
     """
     d_range = z[:, 0:1] - predicted.range[None, :]
     d_bearing = wrap_angle(z[:, 1:2] - predicted.bearing[None, :])
-    return (d_range * d_range * predicted.i_rr[None, :]
-            + 2.0 * d_range * d_bearing * predicted.i_rb[None, :]
-            + d_bearing * d_bearing * predicted.i_bb[None, :])
+    return innovation_mahalanobis_sq(d_range, d_bearing, predicted.i_rr[None, :],
+                                     predicted.i_rb[None, :], predicted.i_bb[None, :])
 
 
 def radius_distance_sq(obs_radius, landmark_radius, landmark_count, params: Params):

@@ -1,29 +1,35 @@
 """FastSLAM: ``make_filter(config) -> Filter(init, step)``, ``run_filter`` and ``estimate``.
 
-One step (Geiser et al. 2023; Montemerlo et al. 2002), for every particle i in parallel:
+One step (Montemerlo et al., "FastSLAM: A Factored Solution to the Simultaneous Localization
+and Mapping Problem", 2002; Geiser et al., "Practical Implementation of FastSLAM for Forestry
+Robot", ICAROB 2023) composes six named stages, for every particle i in parallel
+(``step_propose.py`` holds 1-2, ``step_update.py`` 3-6):
 
-1. propose a pose x_t^i (motion model, observation proposal or their mixture, ``proposal.py``);
-2. predict every landmark's measurement, the squared Mahalanobis distance d2[k, m] of every
-   observation to it, and apply the visibility boundary (hard or loose airlock); with
+1. ``propose`` a pose x_t^i (motion model, observation proposal or their mixture,
+   ``proposal.py``), with the log density ratio that corrects the weight;
+2. ``associate`` at one pose: predict every landmark's measurement, the squared Mahalanobis
+   distance d2[k, m] of every observation to it, apply the visibility boundary (hard or
+   loose airlock) and match (stable matching, greedy, optimal or known ids); with
    ``Params.radius_noise`` > 0 the trunk radius adds d_r2[k, m] (``ekf.radius_distance_sq``)
    to what the gate, the associator and the weight see;
-3. associate observations to landmarks (stable matching, greedy, optimal or known ids);
-4. EKF-update matched landmarks; weight w_i *= prod_k p(z_k | x_t^i, m) where matched
-   observations use N(nu; 0, S) and unexplained ones a constant (``ekf.py``);
-5. evidence: matched landmarks gain, visible unmatched ones lose; delete below threshold;
-   unexplained observations outside the airlock create landmarks in free slots;
-6. normalise weights; resample when ESS < ess_threshold * P.
+3. ``update_landmarks``: EKF-update matched landmarks and compute the per-observation
+   likelihood p(z_k | x_t^i, m): N(nu; 0, S) when matched, a constant when unexplained;
+4. ``weigh``: w_i *= prod_k p(z_k | x_t^i, m) x correction, normalised;
+5. ``manage_map``: matched landmarks gain evidence, visible unmatched ones lose; delete below
+   threshold; unexplained observations outside the airlock create landmarks in free slots;
+6. ``resample`` when ESS < ess_threshold * P.
 
-Observations are cleaned inside jit: rows with a NaN or infinite value, a negative range or a
-bearing outside [-pi, pi] are masked out and counted in ``info.num_invalid_obs``. The public
-``validate_observations`` raises instead (use it at the boundary of your program).
+Observations are cleaned inside jit (``sanitize.py``): rows with a NaN or infinite value, a
+negative range or a bearing outside [-pi, pi] are masked out and counted in
+``info.num_invalid_obs``. The public ``validate_observations`` raises instead (use it at the
+boundary of your program).
 
 Controls are cleaned the same way (``sanitize_control``): a control row u_t (3,) of any motion
 model with a NaN or infinite entry is missing odometry. The step then keeps every pose,
 
     x_t^i = x_{t-1}^i   (no motion noise, no observation draw, log-weight correction 0),
 
-and still runs steps 2-6 (association, EKF update, weights, births, resampling) at the kept
+and still runs stages 2-6 (association, EKF update, weights, births, resampling) at the kept
 poses; ``info.invalid_control`` flags the step. No noise is added because nothing is known
 about the move: a zero control's standstill noise (the constant terms c of Eq. (1)) would be
 an invented move, while keeping the poses leaves the next valid control to move them (the
@@ -39,12 +45,16 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxslam import association, ekf, landmarks, proposal, resampling
+from jaxslam import ekf, landmarks, step_propose, step_update
 from jaxslam.geometry import wrap_angle
 from jaxslam.lineage import Lineage
-from jaxslam.motion import predict_pose, sample_motion
+from jaxslam.sanitize import sanitize_control, sanitize_observations, validate_observations
 from jaxslam.types import FilterConfig, FilterState, Observations, Params, Particles
 from jaxslam.validation import cast_floating, check_controls, check_params
+
+__all__ = ["Estimate", "Filter", "StepInfo", "Trace", "circular_weighted_mean_pose", "estimate",
+           "make_filter", "run_filter", "sanitize_control", "sanitize_observations",
+           "scan_filter", "validate_observations"]
 
 
 class StepInfo(NamedTuple):
@@ -156,357 +166,6 @@ class Trace(NamedTuple):
     invalid_control: jnp.ndarray | None = None
 
 
-class _ObserveResult(NamedTuple):
-    particle: Particles  # one particle (no P axis)
-    log_likelihood: jnp.ndarray  # ()
-    match: jnp.ndarray  # (K,)
-    rounds: jnp.ndarray  # ()
-    dropped: jnp.ndarray  # ()
-    set_aside: jnp.ndarray  # ()
-    birth_slot: jnp.ndarray  # (K,) slot created by each observation, -1 for none
-
-
-# --------------------------------------------------------------------------------------------
-# Observation cleaning
-
-
-def sanitize_observations(obs: Observations):
-    """Mask malformed rows inside jit. Returns (clean Observations, num_invalid ())."""
-    z = obs.z
-    finite = jnp.all(jnp.isfinite(z), axis=-1)
-    well_formed = finite & (z[..., 0] >= 0.0) & (jnp.abs(z[..., 1]) <= jnp.pi)
-    invalid = obs.valid & ~well_formed
-    valid = obs.valid & well_formed
-    z = jnp.where(valid[..., None], z, 0.0)
-    # A radius that is not a finite positive number is unknown (0), whatever the row.
-    radius = jnp.where(valid & jnp.isfinite(obs.radius) & (obs.radius > 0), obs.radius, 0.0)
-    clean = obs._replace(z=z, valid=valid, radius=radius)
-    return clean, jnp.sum(invalid).astype(jnp.int32)
-
-
-def sanitize_control(control):
-    """Mask a non-finite control inside jit. Returns (control (..., 3), invalid (...,) bool).
-
-    invalid = any_j ~isfinite(u_j); the returned control is 0 where invalid (so nothing
-    downstream, its gradient included, sees the NaN: the caller's ``where`` on the result of
-    a zero control is the second half of a double where) and ``control`` elsewhere.
-    """
-    invalid = ~jnp.all(jnp.isfinite(control), axis=-1)
-    return jnp.where(invalid[..., None], jnp.zeros_like(control), control), invalid
-
-
-def validate_observations(obs: Observations, max_obs: int | None = None) -> None:
-    """Raise ``ValueError`` for malformed observations (use outside jit, on concrete arrays).
-
-    Checks shapes ((..., K, 2) with matching (..., K) masks), and, on valid rows, finite values,
-    non-negative ranges and bearings within [-pi, pi].
-    """
-    import numpy as np
-
-    z = np.asarray(obs.z)
-    if z.ndim < 2 or z.shape[-1] != 2:
-        raise ValueError(f"Observations.z must have shape (..., K, 2); got {z.shape}")
-    if max_obs is not None and z.shape[-2] != max_obs:
-        raise ValueError(
-            f"Observations have K={z.shape[-2]} rows but FilterConfig.max_obs={max_obs}; "
-            "pad or truncate to max_obs rows")
-    valid = np.asarray(obs.valid, bool)
-    for name in ("valid", "radius", "landmark_id"):
-        shape = np.shape(getattr(obs, name))
-        if shape != z.shape[:-1]:
-            raise ValueError(f"Observations.{name} has shape {shape}; expected {z.shape[:-1]}")
-    rows = z[valid]
-    if not np.all(np.isfinite(rows)):
-        raise ValueError(f"{int(np.sum(~np.isfinite(rows).all(-1)))} valid observation(s) "
-                         "contain NaN or inf; mark them invalid or remove them")
-    if np.any(rows[:, 0] < 0):
-        raise ValueError(f"{int(np.sum(rows[:, 0] < 0))} valid observation(s) have a negative "
-                         "range; ranges must be >= 0 metres")
-    if np.any(np.abs(rows[:, 1]) > np.pi):
-        raise ValueError("valid observation bearings must lie in [-pi, pi] radians; "
-                         f"got values up to {np.abs(rows[:, 1]).max():.3f}")
-
-
-# --------------------------------------------------------------------------------------------
-# One particle
-
-
-def _association_cost(config, obs, particle, mahalanobis, vis):
-    """(K, M) cost the associator sees: +inf outside the usable/matchable sets."""
-    allowed = vis.usable_obs[:, None] & vis.matchable[None, :]
-    if config.association == "known":
-        same = association.known_id_cost(obs.landmark_id, particle.landmark_id, particle.active)
-        return jnp.where(allowed & jnp.isfinite(same), 0.0, jnp.inf)
-    return jnp.where(allowed, mahalanobis, jnp.inf)
-
-
-class _Association(NamedTuple):
-    """Association of one particle's observations, computed at its matching pose."""
-
-    match: jnp.ndarray  # (K,) landmark slot or -1
-    rounds: jnp.ndarray  # () matching rounds
-    visibility: landmarks.Visibility
-    # At the matching pose, over the N landmarks of the association window (all M slots
-    # without a window); local_match (K,) indexes it (-1: unmatched).
-    predicted: ekf.PredictedMeasurement
-    local_match: jnp.ndarray
-
-
-def _to_slots(window_values, slots, num_slots: int):
-    """(N,) bool flags of the windowed landmarks -> (M,) over all slots (False elsewhere)."""
-    return jnp.zeros((num_slots,), bool).at[slots].set(window_values)
-
-
-def _associate(config: FilterConfig, params: Params, particle: Particles, match_pose,
-               obs: Observations, pose_cov=None) -> _Association:
-    """Steps 2-3 of the module docstring at ``match_pose`` (3,): predictions, boundary, matching.
-
-    ``match_pose`` is the sampled pose for the motion proposal and the motion prediction x_hat
-    for the observation and mixture proposals (computed once, shared with the proposal).
-    ``pose_cov`` (3, 3), when given, is added to the matching covariance
-    (``ekf.add_pose_uncertainty``); the returned ``predicted`` keeps S without it. With an
-    association window only its N landmarks are predicted (``_Association``).
-    """
-    window = config.association_window
-    if 0 < window < config.max_landmarks:
-        # Predictions and pair work on the N nearest active landmarks only; the match is
-        # mapped back to slots.
-        distance = jnp.hypot(particle.landmark_mean[:, 0] - match_pose[0],
-                             particle.landmark_mean[:, 1] - match_pose[1])
-        _, slots = jax.lax.top_k(-jnp.where(particle.active, distance, jnp.inf), window)
-        local = particle._replace(landmark_mean=particle.landmark_mean[slots],
-                                  landmark_cov=particle.landmark_cov[slots],
-                                  landmark_radius=particle.landmark_radius[slots],
-                                  radius_count=particle.radius_count[slots],
-                                  active=particle.active[slots],
-                                  landmark_id=particle.landmark_id[slots])
-    else:
-        slots, local = None, particle
-    predicted = ekf.predict_measurements(match_pose, local.landmark_mean, local.landmark_cov,
-                                         params)
-    local_predicted = (predicted if pose_cov is None
-                       else ekf.add_pose_uncertainty(predicted, pose_cov))
-    mahalanobis = ekf.mahalanobis_sq(obs.z, local_predicted)
-    mahalanobis = jnp.where(obs.valid[:, None] & local.active[None, :], mahalanobis, jnp.inf)
-    vis = landmarks.visibility(obs.z, obs.valid, local.active, local_predicted, mahalanobis,
-                               params, config.boundary)
-    # The trunk radius, when used (params.radius_noise > 0), adds to what the gate and the
-    # associator see; visibility (explained / airlock) stays on the position alone.
-    radius_sq = ekf.radius_distance_sq(obs.radius[:, None], local.landmark_radius[None, :],
-                                       local.radius_count[None, :], params)
-    cost = _association_cost(config, obs, local, mahalanobis + radius_sq, vis)
-    local_match, rounds = association.match(config.association, cost,
-                                            params.association_gate, config.match_rounds)
-    match = local_match
-    if slots is not None:
-        match = jnp.where(local_match >= 0, slots[jnp.clip(local_match, 0)],
-                          -1).astype(jnp.int32)
-        vis = vis._replace(**{name: _to_slots(getattr(vis, name), slots, config.max_landmarks)
-                              for name in ("matchable", "explained", "expected")})
-    return _Association(match, rounds, vis, predicted, local_match)
-
-
-def _observe(config: FilterConfig, params: Params, particle: Particles, found: _Association,
-             obs: Observations) -> _ObserveResult:
-    """Steps 4-5 of the module docstring for one particle at pose ``particle.pose``, given
-    its association ``found``."""
-    num_slots = config.max_landmarks
-    match, rounds, vis = found.match, found.rounds, found.visibility
-    matched_obs = match >= 0
-    slot_of_obs = jnp.where(matched_obs, match, num_slots)
-    obs_of_slot = jnp.full((num_slots,), -1, jnp.int32).at[slot_of_obs].set(
-        jnp.arange(match.shape[0], dtype=jnp.int32), mode="drop")
-    matched_slot = obs_of_slot >= 0
-
-    # Only the <= K matched landmarks are predicted again and updated: rows (K,) gathers each
-    # observation's landmark (slot 0 for unmatched rows, whose results are dropped below).
-    rows = jnp.clip(match, 0)
-    mean_k, cov_k = particle.landmark_mean[rows], particle.landmark_cov[rows]
-    if config.proposal == "motion":
-        # The association was computed at this very pose.
-        pred_k = jax.tree.map(lambda leaf: leaf[jnp.clip(found.local_match, 0)],
-                              found.predicted)
-    else:
-        pred_k = ekf.predict_measurements(particle.pose, mean_k, cov_k, params)
-    # Per-observation likelihood at the particle's pose.
-    d_range = obs.z[:, 0] - pred_k.range
-    d_bearing = wrap_angle(obs.z[:, 1] - pred_k.bearing)
-    mahalanobis_k = (d_range**2 * pred_k.i_rr + 2.0 * d_range * d_bearing * pred_k.i_rb
-                     + d_bearing**2 * pred_k.i_bb)
-    radius_k = ekf.radius_distance_sq(obs.radius, particle.landmark_radius[rows],
-                                      particle.radius_count[rows], params)
-    matched_ll = ekf.gaussian_log_likelihood(mahalanobis_k + radius_k, pred_k.log_det)
-    unexplained_ll = ekf.unexplained_log_likelihood(obs.z[:, 0], params)
-    log_likelihood = jnp.sum(jnp.where(obs.valid, jnp.where(matched_obs, matched_ll,
-                                                            unexplained_ll), 0.0))
-
-    new_mean, new_cov = ekf.update_landmarks(mean_k, cov_k, pred_k, obs.z, params)
-    # One-to-one matching: no two observations write the same slot.
-    mean = particle.landmark_mean.at[slot_of_obs].set(new_mean, mode="drop")
-    cov = particle.landmark_cov.at[slot_of_obs].set(new_cov, mode="drop")
-    radius_obs = obs.radius[jnp.clip(obs_of_slot, 0)]
-    count = particle.observation_count + matched_slot.astype(jnp.int32)
-    # Running mean over the measured radii only (a landmark with none yet takes the first).
-    has_radius = matched_slot & (radius_obs > 0)
-    radius_count = particle.radius_count + has_radius.astype(jnp.int32)
-    running = particle.landmark_radius + (radius_obs - particle.landmark_radius) / jnp.maximum(
-        radius_count, 1)
-    radius = jnp.where(has_radius, running, particle.landmark_radius)
-
-    missed = vis.expected & ~matched_slot & ~vis.explained
-    existence = landmarks.update_existence(particle.existence, matched_slot, missed, params)
-    keep = particle.active & (existence >= params.existence_delete)
-    empty_mean, empty_cov, empty_radius = landmarks.empty_slot_values(num_slots, mean.dtype)
-    mean = jnp.where(keep[:, None], mean, empty_mean)
-    cov = jnp.where(keep[:, None], cov, empty_cov)
-    radius = jnp.where(keep, radius, empty_radius)
-    count = jnp.where(keep, count, 0)
-    radius_count = jnp.where(keep, radius_count, 0)
-    landmark_id = jnp.where(keep, particle.landmark_id, -1)
-
-    birth = vis.usable_obs & ~matched_obs
-    if config.association == "known":
-        # A tree already in the map (even outside the matchable region) is never born twice.
-        in_map = jnp.any(particle.active[None, :]
-                         & (particle.landmark_id[None, :] == obs.landmark_id[:, None]), axis=1)
-        birth = birth & (obs.landmark_id >= 0) & ~in_map
-    slot, dropped = landmarks.birth_slots(keep, birth)
-    born_mean, born_cov = ekf.initialize_landmarks(particle.pose, obs.z, params)
-    active = keep.at[slot].set(True, mode="drop")
-    updated = particle._replace(
-        landmark_mean=landmarks.scatter_rows(mean, slot, born_mean),
-        landmark_cov=landmarks.scatter_rows(cov, slot, born_cov),
-        landmark_radius=landmarks.scatter_rows(radius, slot, obs.radius),
-        landmark_id=landmarks.scatter_rows(landmark_id, slot, obs.landmark_id),
-        active=active,
-        existence=landmarks.scatter_rows(
-            jnp.where(keep, existence, 0.0), slot,
-            jnp.broadcast_to(params.existence_init, slot.shape).astype(existence.dtype)),
-        observation_count=landmarks.scatter_rows(count, slot, jnp.ones_like(slot)),
-        radius_count=landmarks.scatter_rows(radius_count, slot,
-                                            (obs.radius > 0).astype(jnp.int32)),
-    )
-    birth_slot = jnp.where(slot < num_slots, slot, -1).astype(jnp.int32)
-    return _ObserveResult(updated, log_likelihood, match, rounds, dropped,
-                          jnp.sum(vis.set_aside_obs).astype(jnp.int32), birth_slot)
-
-
-# --------------------------------------------------------------------------------------------
-# Proposal
-
-
-def _propose(config, key, params, particles: Particles, control, obs, ratio, keep_pose):
-    """Sample new poses and associate. Returns (poses (P, 3), association (P leading axis),
-    log-weight corrections (P,), observation draws (P,) bool).
-
-    ``keep_pose`` () bool (a masked control, ``sanitize_control``; ``control`` is then 0 and
-    the caller passes ``ratio`` 0): every particle keeps its pose, is associated there and
-    gets correction 0. The draws are still made (same keys) and dropped by ``where``.
-    """
-    num = config.num_particles
-    key_motion, key_mixture = jax.random.split(key)
-    motion = config.motion_model
-    motion_draw = jax.vmap(lambda k, pose: sample_motion(k, pose, control, params, motion))(
-        jax.random.split(key_motion, num), particles.pose)
-    if config.anchor_empty_map:
-        # A particle with no landmark yet: nothing observed can ever tell its pose error
-        # from the map's frame, so it takes the motion mean (the map frame is that pose).
-        mean = jax.vmap(lambda pose: predict_pose(pose, control, params, motion))(
-            particles.pose)
-        motion_draw = jnp.where(jnp.any(particles.active, axis=1)[:, None], motion_draw, mean)
-    # Missing control: the "motion sample" is the previous pose. With ratio 0 no particle
-    # takes the observation draw, so every proposal below returns these poses.
-    motion_draw = jnp.where(keep_pose, particles.pose, motion_draw)
-    if config.proposal == "motion":
-        found = jax.vmap(lambda particle, pose: _associate(config, params, particle, pose, obs))(
-            particles, motion_draw)
-        return motion_draw, found, jnp.zeros((num,), motion_draw.dtype), jnp.zeros(num, bool)
-
-    def one(k, particle, motion_sample):
-        x_hat = predict_pose(particle.pose, control, params, motion)
-        if config.burst_proposal:
-            gaussian, found = _burst_pieces(config, params, particle, x_hat, control, obs)
-        else:
-            pose_cov = proposal.motion_pose_covariance(particle.pose, control, params, motion)
-            found = _associate(config, params, particle, x_hat, obs,
-                               pose_cov if config.match_pose_uncertainty else None)
-            gaussian = proposal.observation_proposal(x_hat, pose_cov, obs.z,
-                                                     found.local_match, found.predicted)
-        pose, used_obs, piece = proposal.mixture_sample(k, motion_sample, gaussian, ratio)
-        if config.burst_proposal:
-            found = jax.tree.map(lambda leaf: leaf[piece], found)
-        correction = proposal.mixture_log_correction(particle.pose, pose, control, params,
-                                                     motion, gaussian, ratio)
-        # The update and the weight use the association at the pose they are evaluated at:
-        # a motion draw is matched at its own pose, exactly as the motion proposal does (so
-        # phi = 0 is the motion proposal), and with ``associate_at_sample`` an observation
-        # draw is matched again at its sample too (the association at x_hat only shaped q).
-        again = ~used_obs | config.associate_at_sample
-        at_sample = _associate(config, params, particle, pose, obs)
-        found = jax.tree.map(lambda a, b: jnp.where(again, a, b), at_sample, found)
-        # A kept pose was not proposed: there is no density ratio to correct (and the zero
-        # control's p_motion at it is NaN when the constant noise terms are 0).
-        correction = jnp.where(keep_pose, jnp.zeros_like(correction), correction)
-        return pose, found, correction, used_obs
-
-    return jax.vmap(one)(jax.random.split(key_mixture, num), particles, motion_draw)
-
-
-def _burst_pieces(config, params, particle: Particles, x_hat, control, obs):
-    """The pieces' proposal of a bursty motion prior (``FilterConfig.burst_proposal``).
-
-    The prior (1 - eps) N(x_hat, Sigma) + eps N(x_hat, kappa^2 Sigma) gives two FastSLAM 2.0
-    Gaussians, each with its own association at x_hat (the burst piece's wider matching
-    covariance finds the landmarks a burst moved), mixed by prior mass x evidence
-    (``proposal.piece_mixture``; an observation a piece leaves unmatched is credited the
-    new-landmark likelihood). With ``burst_turn_pieces`` n > 0 the burst's mass is shared
-    half and half between its Gaussian and the 2n + 1 turn pieces of ``proposal.turn_pieces``,
-    each associated and linearised at its own centre. Returns (``PieceMixture``, the pieces'
-    ``_Association`` stacked on a leading (J,) axis).
-    """
-    motion = config.motion_model
-
-    def piece(centre, cov):
-        found = _associate(config, params, particle, centre, obs,
-                           cov if config.match_pose_uncertainty else None)
-        gaussian = proposal.observation_proposal(centre, cov, obs.z, found.local_match,
-                                                 found.predicted)
-        unexplained = jnp.sum(jnp.where(obs.valid & (found.match < 0),
-                                        ekf.unexplained_log_likelihood(obs.z[:, 0], params),
-                                        0.0))
-        return gaussian._replace(log_evidence=gaussian.log_evidence + unexplained), found
-
-    pieces = [piece(x_hat, proposal.motion_pose_covariance(particle.pose, control, params,
-                                                           motion, factor))
-              for factor in (1.0, params.motion_outlier_scale**2)]
-    eps = params.motion_outlier_probability
-    log_burst = jnp.log(jnp.maximum(eps, 0.0))
-    log_prior = jnp.stack([jnp.log1p(-eps), log_burst])
-    gaussians = proposal.stack_proposals([g for g, _ in pieces])
-    founds = jax.tree.map(lambda *leaves: jnp.stack(leaves), *[f for _, f in pieces])
-    if config.burst_turn_pieces > 0:
-        centres, covs, log_mass = proposal.turn_pieces(
-            particle.pose, control, params, motion, config.burst_turn_pieces,
-            config.burst_turn_span)
-        turn_gaussians, turn_founds = jax.vmap(piece)(centres, covs)
-        concat = lambda a, b: jnp.concatenate([a, b])
-        gaussians = jax.tree.map(concat, gaussians, turn_gaussians)
-        founds = jax.tree.map(concat, founds, turn_founds)
-        half = log_burst + jnp.log(0.5)
-        log_prior = jnp.concatenate([jnp.stack([log_prior[0], half]), half + log_mass])
-    return proposal.piece_mixture(gaussians, log_prior), founds
-
-
-def _mixture_ratio(config, params, state):
-    if config.proposal == "motion":
-        return jnp.zeros((), state.log_weight.dtype)
-    if config.proposal == "observation":
-        return jnp.ones((), state.log_weight.dtype)
-    if config.mixture_mode == "adaptive":
-        return proposal.adaptive_ratio(state.likelihood_fast, state.likelihood_slow, params)
-    return jnp.asarray(params.mixture_ratio, state.log_weight.dtype)
-
-
 # --------------------------------------------------------------------------------------------
 # Public API
 
@@ -538,65 +197,62 @@ def _init(config: FilterConfig, initial_pose=None, dtype=jnp.float32) -> FilterS
                        jnp.zeros((), dtype), jnp.zeros((), dtype), jnp.zeros((), jnp.int32))
 
 
-def _step(config: FilterConfig, key, state: FilterState, params: Params, control,
-          obs: Observations):
+def _clean_inputs(state: FilterState, params: Params, control, obs: Observations):
+    """Cast to the state's float dtype and mask malformed rows (``sanitize.py``).
+
+    Returns (params, control (3,), obs, num_invalid_obs () int32, invalid_control () bool).
+    """
     # One float dtype, the state's: float64 params or observations with a float32 state
     # would otherwise change the type of the scan carry (a no-op when they already match).
     params, control, obs = cast_floating((params, control, obs), state.particles.pose.dtype)
-    key_propose, key_resample = jax.random.split(key)
     obs, num_invalid = sanitize_observations(obs)
     control, invalid_control = sanitize_control(control)
+    return params, control, obs, num_invalid, invalid_control
+
+
+def _step_info(proposed, weights, mapped, resampled, ratio, num_invalid,
+               invalid_control) -> StepInfo:
+    """``StepInfo`` from the stages' results."""
+    return StepInfo(
+        ess=resampled.ess, resampled=resampled.resampled, weights_reset=weights.reset,
+        num_landmarks=jnp.sum(resampled.particles.active, axis=1).astype(jnp.int32),
+        match=proposed.association.match,
+        match_rounds=jnp.max(proposed.association.rounds).astype(jnp.int32),
+        num_invalid_obs=num_invalid, num_dropped_births=mapped.num_dropped,
+        num_set_aside=mapped.num_set_aside, mixture_ratio=ratio,
+        num_observation_draws=jnp.sum(proposed.used_observation).astype(jnp.int32),
+        mean_log_likelihood=weights.mean_log_likelihood,
+        best_particle=resampled.best_particle, ancestor=resampled.ancestor,
+        birth_slot=mapped.birth_slot, log_evidence=weights.log_evidence,
+        invalid_control=invalid_control)
+
+
+def _step(config: FilterConfig, key, state: FilterState, params: Params, control,
+          obs: Observations):
+    """One step: the six stages of the module docstring in order. Returns (state, StepInfo)."""
+    params, control, obs, num_invalid, invalid_control = _clean_inputs(state, params, control,
+                                                                       obs)
+    key_propose, key_resample = jax.random.split(key)
     # A masked control draws nothing from the observation proposal (phi 0, poses kept).
-    ratio = jnp.where(invalid_control, 0.0, _mixture_ratio(config, params, state)).astype(
-        state.log_weight.dtype)
-    poses, found, correction, used_obs = _propose(
-        config, key_propose, params, state.particles, control, obs, ratio, invalid_control)
-    moved = state.particles._replace(pose=poses)
-    result = jax.vmap(lambda particle, association_: _observe(config, params, particle,
-                                                              association_, obs))(moved, found)
-    unnormalised = state.log_weight + result.log_likelihood + correction
-    log_weight, reset = resampling.normalize_log_weights(unnormalised)
-    # log p(z_t | z_1:t-1): the particle filter's estimate of the incremental evidence.
-    log_evidence = jax.scipy.special.logsumexp(unnormalised)
+    ratio = jnp.where(invalid_control, 0.0, step_propose.mixture_ratio(
+        config, params, state)).astype(state.log_weight.dtype)
+    proposed = step_propose.propose(config, key_propose, params, state.particles, control, obs,
+                                    ratio, invalid_control)
 
-    num_valid = jnp.sum(obs.valid)
-    mean_ll = jnp.sum(jnp.exp(state.log_weight) * result.log_likelihood) / jnp.maximum(
-        num_valid, 1)
-    fast, slow = proposal.update_likelihood_averages(
-        state.likelihood_fast, state.likelihood_slow, mean_ll, num_valid > 0, state.step == 0,
-        params)
+    def per_particle(stage):
+        return jax.vmap(lambda one, found: stage(config, params, one, found, obs))
 
-    ess = resampling.effective_sample_size(log_weight)
-    do_resample = ess < params.ess_threshold * config.num_particles
-
-    best_before = jnp.argmax(log_weight).astype(jnp.int32)
-
-    def resample(operand):
-        particles, weights, best, _ = operand
-        indices = resampling.resample_indices(key_resample, weights, config.resampling)
-        uniform = jnp.full_like(weights, -jnp.log(config.num_particles))
-        # The highest-weight particle's first copy (kept unless the scheme dropped it).
-        copies = indices == best
-        best = jnp.where(jnp.any(copies), jnp.argmax(copies), 0).astype(jnp.int32)
-        return resampling.gather(particles, indices), uniform, best, indices.astype(jnp.int32)
-
-    particles, log_weight, best_particle, ancestor = jax.lax.cond(
-        do_resample, resample, lambda operand: operand,
-        (result.particle, log_weight, best_before,
-         jnp.arange(config.num_particles, dtype=jnp.int32)))
-    new_state = FilterState(particles, log_weight, fast, slow, state.step + 1)
-    info = StepInfo(
-        ess=ess, resampled=do_resample, weights_reset=reset,
-        num_landmarks=jnp.sum(particles.active, axis=1).astype(jnp.int32),
-        match=result.match, match_rounds=jnp.max(result.rounds).astype(jnp.int32),
-        num_invalid_obs=num_invalid, num_dropped_births=result.dropped,
-        num_set_aside=result.set_aside, mixture_ratio=ratio,
-        num_observation_draws=jnp.sum(used_obs).astype(jnp.int32),
-        mean_log_likelihood=mean_ll, best_particle=best_particle, ancestor=ancestor,
-        birth_slot=result.birth_slot, log_evidence=log_evidence,
-        invalid_control=invalid_control,
-    )
-    return new_state, info
+    moved = state.particles._replace(pose=proposed.pose)
+    updated = per_particle(step_update.update_landmarks)(moved, proposed.association)
+    weights = step_update.weigh(params, state, jnp.sum(updated.log_likelihood, axis=1),
+                                proposed.log_correction, obs.valid)
+    mapped = per_particle(step_update.manage_map)(updated, proposed.association)
+    resampled = step_update.resample(config, params, key_resample, mapped.particle,
+                                     weights.log_weight)
+    new_state = FilterState(resampled.particles, resampled.log_weight, weights.likelihood_fast,
+                            weights.likelihood_slow, state.step + 1)
+    return new_state, _step_info(proposed, weights, mapped, resampled, ratio, num_invalid,
+                                 invalid_control)
 
 
 def make_filter(config: FilterConfig) -> Filter:

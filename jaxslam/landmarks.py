@@ -115,8 +115,8 @@ def birth_slots(active, birth):
     free_rank = jnp.cumsum(free) - 1  # (M,) rank of each free slot among free slots
     rank = jnp.cumsum(birth) - 1  # (K,) rank of each birth among births
     placed = birth & (rank < jnp.sum(free))
-    # One-hot (K, M) pick summed against slot indices: an argsort per particle cost 7 ms and
-    # an argmax 4 ms at P=1000, M=128 on this CPU; this sum about 0.5 ms.
+    # One-hot (K, M) pick summed against slot indices: a sum over a mask vectorises well,
+    # where an argsort or argmax per particle does not (benchmarks/filter_step.py, P=1000).
     hit = free[None, :] & (free_rank[None, :] == rank[:, None])
     picked = jnp.sum(jnp.where(hit, jnp.arange(num_slots)[None, :], 0), axis=1)
     slot = jnp.where(placed, picked, num_slots)

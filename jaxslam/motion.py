@@ -120,17 +120,35 @@ def arc_delta(speed, yaw_rate, dt):
     return jnp.stack([speed * forward, speed * lateral, angle], axis=-1)
 
 
+def ackermann_rates(speed, steering, wheelbase, encoder_offset):
+    """Rear-axle centre speed and yaw rate of an Ackermann vehicle, each (...,).
+
+    The speed v is measured at a wheel offset H sideways from the centre line (Victoria Park:
+    the rear-left encoder), the steering angle a is the front axle's, L the wheelbase:
+
+        vc = v / (1 - tan(a) H / L),   omega = vc tan(a) / L.
+
+    Args:
+      speed: (...,) encoder-wheel speed v [m/s].  steering: (...,) steering angle a [rad].
+      wheelbase: L [m].  encoder_offset: H [m]. All broadcastable.
+    Returns:
+      (centre_speed (...,) [m/s], yaw_rate (...,) [rad/s]).
+    """
+    tan_steer = jnp.tan(steering)
+    centre_speed = speed / (1.0 - tan_steer * encoder_offset / wheelbase)
+    return centre_speed, centre_speed * tan_steer / wheelbase
+
+
 def ackermann_delta(control, params: Params):
     """Relative laser pose (..., 3) for an Ackermann control (v_encoder, steering, dt).
 
-    Victoria Park kinematics: the rear-axle centre moves at vc = v / (1 - tan(a) H / L) with
-    yaw rate vc tan(a) / L; the pose is the laser's, offset (laser_forward, laser_left) from
-    the rear axle, so delta = offset^-1 (+) arc (+) offset.
+    Victoria Park kinematics (``ackermann_rates``): the rear-axle centre moves at vc with yaw
+    rate omega; the pose is the laser's, offset (laser_forward, laser_left) from the rear axle,
+    so delta = offset^-1 (+) arc (+) offset.
     """
     speed, steering, dt = control[..., 0], control[..., 1], control[..., 2]
-    tan_steer = jnp.tan(steering)
-    centre_speed = speed / (1.0 - tan_steer * params.encoder_offset / params.wheelbase)
-    yaw_rate = centre_speed * tan_steer / params.wheelbase
+    centre_speed, yaw_rate = ackermann_rates(speed, steering, params.wheelbase,
+                                             params.encoder_offset)
     arc = arc_delta(centre_speed, yaw_rate, dt)
     offset = jnp.stack(jnp.broadcast_arrays(params.laser_forward, params.laser_left,
                                             jnp.zeros_like(params.laser_left)), axis=-1)

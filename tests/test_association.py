@@ -371,6 +371,86 @@ def test_known_id_cost_matches_numpy():
         known_id_cost(obs_ids, slot_ids, active[:3])
 
 
+def known_id_births_reference(candidates, obs_ids, slot_ids, active):
+    """Loop over observations: born when a candidate with a known id no active slot holds."""
+    return np.array([bool(candidates[k]) and obs_ids[k] >= 0
+                     and not any(active[m] and slot_ids[m] == obs_ids[k]
+                                 for m in range(len(slot_ids)))
+                     for k in range(len(obs_ids))], bool).reshape(len(obs_ids))
+
+
+def random_births(seed, batch, num_obs, num_slots):
+    """Ids in [-1, 4) so that repeats, unknown ids and inactive twins are common."""
+    rng = np.random.default_rng(seed)
+    return (rng.random((batch, num_obs)) < 0.7, rng.integers(-1, 4, (batch, num_obs)),
+            rng.integers(-1, 4, (batch, num_slots)), rng.random((batch, num_slots)) < 0.5)
+
+
+@pytest.mark.parametrize("jit", [False, True])
+def test_known_id_births_matches_numpy(jit):
+    fn = jax.jit(association.known_id_births) if jit else association.known_id_births
+    for candidates, obs_ids, slot_ids, active in zip(*random_births(4, 40, 6, 5)):
+        got = fn(candidates, obs_ids, slot_ids, active)
+        chex.assert_shape(got, (6,))
+        assert got.dtype == jnp.bool_
+        np.testing.assert_array_equal(
+            got, known_id_births_reference(candidates, obs_ids, slot_ids, active))
+
+
+def test_known_id_births_under_vmap():
+    batch = random_births(5, 16, 7, 9)
+    got = jax.jit(jax.vmap(association.known_id_births))(*batch)
+    chex.assert_shape(got, (16, 7))
+    want = np.stack([known_id_births_reference(*row) for row in zip(*batch)])
+    np.testing.assert_array_equal(got, want)
+    assert want.any() and not want.all()   # the instances exercise both outcomes
+
+
+def test_known_id_births_edges():
+    # No observations: an empty answer, eagerly, jitted and under vmap.
+    none = (np.zeros(0, bool), np.zeros(0, np.int32), np.array([1, 2]), np.array([True, True]))
+    chex.assert_shape(association.known_id_births(*none), (0,))
+    chex.assert_shape(jax.jit(association.known_id_births)(*none), (0,))
+    chex.assert_shape(jax.vmap(association.known_id_births)(
+        *(np.broadcast_to(a, (3,) + a.shape) for a in none)), (3, 0))
+    # All slots full: only trees not yet in the map are born (capacity is the map's concern,
+    # ``landmarks.birth_slots``); an unknown id (-1) is never born, even if a slot says -1.
+    slot_ids, active = np.array([0, 1, -1]), np.ones(3, bool)
+    obs_ids, candidates = np.array([1, 2, -1, 5, 0]), np.array([True, True, True, True, False])
+    got = association.known_id_births(candidates, obs_ids, slot_ids, active)
+    np.testing.assert_array_equal(got, [False, True, False, True, False])
+    # A deleted (inactive) slot still holding the id does not block a rebirth.
+    got = association.known_id_births(np.array([True]), np.array([4]), np.array([4]),
+                                      np.array([False]))
+    np.testing.assert_array_equal(got, [True])
+
+
+def test_birth_candidates_restricts_known_ids_only():
+    candidates, obs_ids, slot_ids, active = (a[0] for a in random_births(6, 1, 8, 6))
+    for kind in ASSOCIATIONS:
+        got = association.birth_candidates(kind, candidates, obs_ids, slot_ids, active)
+        want = (known_id_births_reference(candidates, obs_ids, slot_ids, active)
+                if kind == "known" else candidates)
+        np.testing.assert_array_equal(got, want)
+    assert not np.array_equal(known_id_births_reference(candidates, obs_ids, slot_ids, active),
+                              candidates)
+
+
+def test_association_cost_matches_numpy():
+    rng = np.random.default_rng(8)
+    distance = rng.random((5, 6)) * 4.0
+    allowed = rng.random((5, 6)) < 0.7
+    obs_ids, slot_ids = rng.integers(-1, 4, 5), rng.integers(-1, 4, 6)
+    active = rng.random(6) < 0.8
+    same = (obs_ids[:, None] == slot_ids[None, :]) & (obs_ids[:, None] >= 0) & active[None, :]
+    for kind in ASSOCIATIONS:
+        got = jax.jit(association.association_cost, static_argnums=0)(
+            kind, distance, allowed, obs_ids, slot_ids, active)
+        want = (np.where(allowed & same, 0.0, np.inf) if kind == "known"
+                else np.where(allowed, distance, np.inf))
+        np.testing.assert_array_equal(got, want)
+
+
 # ----------------------------------------------------------------------------- dispatch
 def test_match_dispatches_every_kind():
     cost, gate = random_instances(30, 1, 6, 8)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
-from jaxslam import calibrate
+from jaxslam import calibrate, nonnegative
 from jaxslam.types import default_params
 
 # Geiser et al. 2023, Table 1: rows (rot1, trans, rot2), columns (translation, rotation, constant).
@@ -59,10 +59,10 @@ def random_problem(rng, num_groups=30, num_features=3, active=True):
 def test_nonnegative_matches_scipy_nnls(seed, active):
     design, target, weight = random_problem(np.random.default_rng(seed), active=active)
     expected = ref_nnls(design, target, weight)
-    got = calibrate.fit_nonnegative(design, target, weight)
+    got = nonnegative.fit_nonnegative(design, target, weight)
     np.testing.assert_allclose(got, expected, atol=1e-9, rtol=1e-7)
     # The optax projected gradient alone (no polish) also converges, to 1e-5.
-    raw = calibrate.fit_nonnegative(design, target, weight, num_steps=5000, polish=False)
+    raw = nonnegative.fit_nonnegative(design, target, weight, num_steps=5000, polish=False)
     np.testing.assert_allclose(raw, expected, atol=1e-5)
     assert np.all(np.asarray(got) >= 0.0)
 
@@ -71,13 +71,13 @@ def test_nonnegative_jit_nojit_vmap():
     rng = np.random.default_rng(7)
     problems = [random_problem(rng) for _ in range(3)]
     design, target, weight = (np.stack(parts) for parts in zip(*problems))
-    batched = jax.vmap(lambda d, t, w: calibrate.fit_nonnegative(d, t, w))(design, target, weight)
+    batched = jax.vmap(lambda d, t, w: nonnegative.fit_nonnegative(d, t, w))(design, target, weight)
     for i in range(3):
         np.testing.assert_allclose(batched[i], ref_nnls(design[i], target[i], weight[i]),
                                    atol=1e-9, rtol=1e-7)
     with jax.disable_jit():
-        eager = calibrate.fit_nonnegative(design[0], target[0], weight[0], num_steps=5)
-    jitted = calibrate.fit_nonnegative(design[0], target[0], weight[0], num_steps=5)
+        eager = nonnegative.fit_nonnegative(design[0], target[0], weight[0], num_steps=5)
+    jitted = nonnegative.fit_nonnegative(design[0], target[0], weight[0], num_steps=5)
     np.testing.assert_allclose(eager, jitted, rtol=1e-10, atol=1e-12)
 
 
@@ -85,7 +85,7 @@ def test_zero_weight_drops_groups():
     design, target, weight = random_problem(np.random.default_rng(3))
     weight[:10] = 0.0
     target[:10] = 1e3  # garbage that must not matter
-    np.testing.assert_allclose(calibrate.fit_nonnegative(design, target, weight),
+    np.testing.assert_allclose(nonnegative.fit_nonnegative(design, target, weight),
                                ref_nnls(design[10:], target[10:], weight[10:]),
                                atol=1e-9, rtol=1e-7)
 

@@ -9,8 +9,9 @@ no JAX, no jaxslam import; its docstring lists every convention). Two granularit
   (the drawn pose for the same standard-normal draw), ``proposal.mixture_log_correction`` +
   the matched/unexplained log-likelihood at the drawn pose (the log-weight increment),
   ``ekf.update_landmarks`` at the drawn pose, and ``ekf.add_pose_uncertainty`` (the FastSLAM
-  2.0 matching covariance) -- composed as ``filter._propose`` / ``filter._observe`` compose
-  them, eagerly, under ``jax.jit`` and under ``jax.vmap`` over a batch of particles.
+  2.0 matching covariance) -- composed as ``step_propose.propose`` /
+  ``step_update.update_landmarks`` compose them, eagerly, under ``jax.jit`` and under
+  ``jax.vmap`` over a batch of particles.
 * The public step, ``make_filter(config).step`` with ``association="known"`` (the association
   is given, as in the reference), ``proposal="observation"`` or ``"mixture"`` and
   ``ess_threshold=0`` (no resampling, so particle i stays particle i): given each particle's
@@ -147,7 +148,7 @@ CASE_KEYS = ("prev", "control", "landmark_mean", "landmark_cov", "z", "match", "
 
 
 # ---------------------------------------------------------------------------------------------
-# jaxslam kernels of one particle, composed as filter._propose / filter._observe do
+# jaxslam kernels of one particle, composed as step_propose.propose / update_landmarks do
 
 
 def jax_particle(prev, control, landmark_mean, landmark_cov, z, match, valid, key, ratio,

@@ -360,7 +360,7 @@ def test_burst_draws_have_the_mixture_variance():
 
 
 def test_fit_bursts_recovers_a_mixture_and_rejects_a_gaussian():
-    from jaxslam.self_calibration import fit_bursts
+    from jaxslam.noise_fit import fit_bursts
 
     rng = np.random.default_rng(0)
     n = 4000
@@ -371,3 +371,70 @@ def test_fit_bursts_recovers_a_mixture_and_rejects_a_gaussian():
     assert abs(eps - 0.1) < 0.03 and abs(core - 1.0) < 0.05 and abs(kappa - 5.0) < 0.75
     assert fit_bursts(rng.normal(size=(n, 2))) is None
     assert fit_bursts(rng.normal(size=(10, 2))) is None  # too few moves
+
+
+# ---------------------------------------------------------------------------------------------
+# Ackermann rates and the pose -> odometry inverse: NumPy float64, jit, vmap, edges
+
+
+def ref_ackermann_rates(speed, steering, wheelbase, offset):
+    """Victoria Park README: vc = v / (1 - tan(a) H / L), omega = vc tan(a) / L (float64)."""
+    centre = speed / (1.0 - np.tan(steering) * offset / wheelbase)
+    return centre, centre * np.tan(steering) / wheelbase
+
+
+def test_ackermann_rates_vs_numpy_jit_vmap(rng):
+    speed, steering = rng.uniform(-1, 6, 40), rng.uniform(-0.6, 0.6, 40)
+    want = ref_ackermann_rates(speed, steering, 2.83, 0.76)
+    eager = motion.ackermann_rates(jnp.asarray(speed), jnp.asarray(steering), 2.83, 0.76)
+    jitted = jax.jit(motion.ackermann_rates)(jnp.asarray(speed), jnp.asarray(steering), 2.83,
+                                             0.76)
+    mapped = jax.vmap(motion.ackermann_rates, in_axes=(0, 0, None, None))(
+        jnp.asarray(speed), jnp.asarray(steering), 2.83, 0.76)
+    for got in (eager, jitted, mapped):  # the same float64 arithmetic: rounding only
+        np.testing.assert_allclose(np.asarray(got[0]), want[0], rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(np.asarray(got[1]), want[1], rtol=1e-13, atol=1e-13)
+
+
+def test_ackermann_rates_edges():
+    centre, rate = motion.ackermann_rates(jnp.asarray([2.0, 0.0, -1.5]),
+                                          jnp.asarray([0.0, 0.3, 0.0]), 2.83, 0.76)
+    # Straight ahead the encoder wheel moves with the centre and nothing turns; standing still
+    # nothing moves whatever the steering.
+    np.testing.assert_array_equal(np.asarray(centre), [2.0, 0.0, -1.5])
+    np.testing.assert_array_equal(np.asarray(rate), [0.0, 0.0, 0.0])
+    # Turning left (a > 0) the rear-left encoder wheel is on the inside: the centre is faster.
+    centre, rate = motion.ackermann_rates(jnp.asarray(2.0), jnp.asarray(0.2), 2.83, 0.76)
+    assert float(centre) > 2.0 and float(rate) > 0.0
+
+
+def test_ackermann_delta_uses_the_rates(params):
+    """The Ackermann move turns by omega dt, omega from ``ackermann_rates`` (params' geometry)."""
+    control = jnp.asarray([3.0, 0.25, 0.4])
+    _, rate = motion.ackermann_rates(control[0], control[1], params.wheelbase,
+                                     params.encoder_offset)
+    delta = motion.ackermann_delta(control, params)
+    np.testing.assert_allclose(float(delta[2]), float(rate) * 0.4, rtol=1e-12)
+
+
+def test_odometry_from_poses_across_pi_jit_vmap(params):
+    """Headings either side of +-pi: rot1 and rot2 are the short turns, wrapped; a pure turn
+    across +-pi keeps rot1 = 0 and puts the whole (short) turn in rot2."""
+    prev = np.array([[0.0, 0.0, np.pi - 0.05], [1.0, 1.0, -np.pi + 0.02],
+                     [2.0, -1.0, np.pi - 0.01]])
+    nxt = np.array([[-1.0, 0.02, -np.pi + 0.05], [0.0, 1.0, np.pi - 0.03],
+                    [2.0 + 1e-4, -1.0, -np.pi + 0.01]])
+    min_translation = float(params.min_translation)
+    want = np.stack([ref_odometry(a, b, min_translation) for a, b in zip(prev, nxt)])
+    eager = motion.odometry_from_poses(jnp.asarray(prev), jnp.asarray(nxt), min_translation)
+    jitted = jax.jit(motion.odometry_from_poses)(jnp.asarray(prev), jnp.asarray(nxt),
+                                                min_translation)
+    mapped = jax.vmap(motion.odometry_from_poses, in_axes=(0, 0, None))(
+        jnp.asarray(prev), jnp.asarray(nxt), min_translation)
+    for got in (eager, jitted, mapped):
+        got = np.asarray(got)
+        np.testing.assert_allclose(got[:, 1], want[:, 1], rtol=1e-12)
+        angle_close(got[:, [0, 2]], want[:, [0, 2]], 1e-12)
+        assert np.all(np.abs(got[:, [0, 2]]) < 0.2)  # short turns, never ~2 pi
+    assert np.asarray(eager)[2, 0] == 0.0  # 0.1 mm: a pure turn of 0.02 rad
+    np.testing.assert_allclose(np.asarray(eager)[2, 2], 0.02, atol=1e-12)

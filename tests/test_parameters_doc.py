@@ -18,51 +18,10 @@ import numpy as np
 import pytest
 
 from jaxslam.columns import CONFIG_UNITS
-from jaxslam.types import FilterConfig, Params, default_params
+from jaxslam.types import DERIVED_DEFAULTS, PARAM_DEFAULTS, FilterConfig, Params, default_params
 from jaxslam.validation import check_params
 
 DOC = pathlib.Path(__file__).resolve().parents[1] / "docs" / "parameters.md"
-
-# The documented defaults, pinned: the values of default_params() in the last commit before
-# the derived airlock default (git show HEAD:jaxslam/types.py, ``values`` of default_params,
-# airlock_sigmas = sqrt(gate 25)), and the burst defaults
-# of the default observation proposal (eps 0.05, kappa 8, chosen in proposal_defaults). They are the numbers docs/parameters.md states; a change
-# here is a change of every result computed with the defaults.
-PINNED_DEFAULTS = dict(
-    rot1_noise=(0.0, 0.06, 0.0002),
-    trans_noise=(0.02, 0.006, 0.00003),
-    rot2_noise=(0.0, 0.06, 0.0003),
-    motion_outlier_probability=0.05,
-    motion_outlier_scale=8.0,
-    min_translation=0.01,
-    wheelbase=2.83,
-    encoder_offset=0.76,
-    laser_forward=3.78,
-    laser_left=0.50,
-    range_noise=(0.005, 0.0),
-    bearing_noise=(0.0005, 0.0),
-    range_std_floor=0.01,
-    bearing_std_floor=0.001,
-    radius_noise=0.0,
-    max_range=20.0,
-    min_range=0.1,
-    miss_range=float("inf"),
-    miss_bearing=float(np.pi),
-    association_gate=25.0,
-    new_landmark_log_offset=0.0,
-    detection_probability=0.9,
-    false_alarm_probability=0.05,
-    existence_init=1.0,
-    existence_delete=-1.5,
-    existence_max=6.0,
-    airlock_sigmas=5.0,
-    ess_threshold=0.5,
-    mixture_ratio=0.3,
-    mixture_min=0.05,
-    mixture_max=0.9,
-    likelihood_rate_fast=0.5,
-    likelihood_rate_slow=0.05,
-)
 
 # The fields jaxslam calibrate estimates (self_calibration.calibrate_params: the keys of its
 # ``update``), which the page marks **calibrated**.
@@ -119,14 +78,6 @@ def test_row_unit_matches_config_units(name):
     assert _doc_rows()[name]["Unit"] == CONFIG_UNITS[f"params.{name}"]
 
 
-@pytest.mark.parametrize("name", Params._fields)
-def test_row_default_matches_default_params(name):
-    documented = np.asarray(_default_value(_doc_rows()[name]["Default"]), np.float32)
-    actual = np.asarray(getattr(default_params(), name))
-    assert documented.shape == actual.shape, name
-    assert np.array_equal(_bits(documented), _bits(actual)), (name, documented, actual)
-
-
 def test_rows_say_how_to_estimate_and_which_fields_are_calibrated():
     rows = _doc_rows()
     marked = {name for name, row in rows.items() if "**calibrated**" in row["Estimate from"]}
@@ -144,14 +95,23 @@ def test_page_says_how_to_set_a_field():
         assert needle in text, needle
 
 
-def test_defaults_are_bit_identical_to_the_pinned_values():
-    params = default_params()
-    assert list(PINNED_DEFAULTS) == list(Params._fields)
-    for name, value in PINNED_DEFAULTS.items():
-        leaf = np.asarray(getattr(params, name))
-        assert leaf.dtype == np.float32, name
-        assert leaf.shape == np.shape(value), name
-        assert np.array_equal(leaf.view(np.uint32), _bits(value)), (name, leaf, value)
+def test_default_table_covers_every_field_once():
+    assert set(PARAM_DEFAULTS).isdisjoint(DERIVED_DEFAULTS)
+    assert sorted([*PARAM_DEFAULTS, *DERIVED_DEFAULTS]) == sorted(Params._fields)
+
+
+@pytest.mark.parametrize("name", Params._fields)
+def test_defaults_are_the_documented_values_bit_for_bit(name):
+    """docs/parameters.md is the pin: it states every default independently of the code, so a
+    changed value in ``PARAM_DEFAULTS`` (or a changed derivation) fails here until the page,
+    and with it every result computed with the defaults, is updated on purpose."""
+    documented = _default_value(_doc_rows()[name]["Default"])
+    leaf = np.asarray(getattr(default_params(), name))
+    assert leaf.dtype == np.float32, name
+    assert leaf.shape == np.shape(documented), name
+    assert np.array_equal(leaf.view(np.uint32), _bits(documented)), (name, leaf, documented)
+    if name in PARAM_DEFAULTS:
+        assert np.array_equal(_bits(PARAM_DEFAULTS[name]), _bits(documented)), name
 
 
 @pytest.mark.parametrize("config", [

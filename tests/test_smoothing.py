@@ -7,13 +7,12 @@ import pytest
 import scipy.sparse
 import scipy.sparse.linalg
 
+import jaxslam.smoothing.problem as lsq
 from jaxslam import lineage, smoothing
-from jaxslam.datasets.log_format import odometry_path
-from jaxslam.datasets.victoria_park import rigid_align_2d, rigid_transform_2d
-from jaxslam.ekf import measurement_std
 from jaxslam.filter import Lineage, estimate, run_filter
 from jaxslam.geometry import range_bearing, relative
-from jaxslam.motion import apply_odometry, odometry_std
+from jaxslam.smoothing import residuals, solver
+from jaxslam.smoothing.visits import largest_visit
 from jaxslam.types import FilterConfig, default_params
 from tests.test_filter import SENSOR_RANGE, simulate_circle
 
@@ -21,7 +20,7 @@ F64 = jnp.float64
 
 
 # ---------------------------------------------------------------------------------------------
-# Residuals and Jacobians against plain NumPy references
+# Residuals and Jacobians against plain NumPy float64 references
 
 
 def numeric_jacobian(function, x, step=1e-6):
@@ -34,65 +33,214 @@ def numeric_jacobian(function, x, step=1e-6):
     return np.stack(columns, axis=1)
 
 
+def numpy_wrap(angle):
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def numpy_move_residual(start, end, delta):
+    """Reference: e = start^-1 (+) end - delta (N, 3) and its hand-derived Jacobians."""
+    dx, dy = end[:, 0] - start[:, 0], end[:, 1] - start[:, 1]
+    c, s = np.cos(start[:, 2]), np.sin(start[:, 2])
+    error = np.stack([c * dx + s * dy - delta[:, 0], -s * dx + c * dy - delta[:, 1],
+                      numpy_wrap(end[:, 2] - start[:, 2] - delta[:, 2])], axis=1)
+    zero, one = np.zeros_like(c), np.ones_like(c)
+    jac_start = np.stack([np.stack([-c, -s, -s * dx + c * dy], 1),
+                          np.stack([s, -c, -c * dx - s * dy], 1),
+                          np.stack([zero, zero, -one], 1)], axis=1)
+    jac_end = np.stack([np.stack([c, s, zero], 1), np.stack([-s, c, zero], 1),
+                        np.stack([zero, zero, one], 1)], axis=1)
+    return error, jac_start, jac_end
+
+
+def numpy_observation_residual(pose, point, z):
+    """Reference: e = (range, bearing) - z (N, 2) and its hand-derived Jacobians."""
+    dx, dy = point[:, 0] - pose[:, 0], point[:, 1] - pose[:, 1]
+    q = dx**2 + dy**2
+    r = np.sqrt(q)
+    error = np.stack([r - z[:, 0], numpy_wrap(np.arctan2(dy, dx) - pose[:, 2] - z[:, 1])], 1)
+    jac_point = np.stack([np.stack([dx / r, dy / r], 1), np.stack([-dy / q, dx / q], 1)], 1)
+    jac_pose = np.concatenate([-jac_point, np.broadcast_to([[[0.0], [-1.0]]], (len(r), 2, 1))],
+                              axis=2)
+    return error, jac_pose, jac_point
+
+
+def numpy_move_whitening(odometry, params, std_floor=1e-3):
+    """Reference: delta (N, 3), W (N, 3, 3) and the Eq. (1) stds (N, 3), Jacobian by hand."""
+    rot1, trans, rot2 = odometry.T
+    delta = np.stack([trans * np.cos(rot1), trans * np.sin(rot1), numpy_wrap(rot1 + rot2)], 1)
+    a = [np.asarray(c, np.float64) for c in (params.rot1_noise, params.trans_noise,
+                                             params.rot2_noise)]
+    std = np.stack([a[0][0] * abs(trans) + a[0][1] * abs(rot1) + a[0][2],
+                    a[1][0] * abs(trans) + a[1][1] * (abs(rot1) + abs(rot2)) + a[1][2],
+                    a[2][0] * abs(trans) + a[2][1] * abs(rot2) + a[2][2]], 1)
+    zero, one = np.zeros_like(trans), np.ones_like(trans)
+    jac = np.stack([np.stack([-trans * np.sin(rot1), np.cos(rot1), zero], 1),
+                    np.stack([trans * np.cos(rot1), np.sin(rot1), zero], 1),
+                    np.stack([one, zero, one], 1)], axis=1)
+    cov = np.einsum("nij,nj,nkj->nik", jac, std**2, jac) + np.diag([std_floor**2] * 2 + [0.0])
+    order = np.array([2, 0, 1])
+    white = np.linalg.inv(np.linalg.cholesky(cov[:, order][:, :, order]))
+    return delta, white[:, :, np.argsort(order)], std
+
+
 @pytest.fixture(scope="module")
 def poses():
+    """(start, end) (24, 3): random moves, then four turns across +-pi."""
     rng = np.random.default_rng(0)
     start = np.concatenate([rng.uniform(-5, 5, (20, 2)), rng.uniform(-3, 3, (20, 1))], 1)
     end = start + np.concatenate([rng.uniform(-2, 2, (20, 2)), rng.uniform(-1, 1, (20, 1))], 1)
+    across = np.array([[np.pi - 0.05, -np.pi + 0.05], [-np.pi + 0.02, np.pi - 0.03],
+                       [3.1, -3.1], [-np.pi, np.pi - 1e-9]])
+    start = np.concatenate([start, np.c_[rng.normal(size=(4, 2)), across[:, 0]]])
+    end = np.concatenate([end, np.c_[start[20:, :2] + rng.normal(size=(4, 2)), across[:, 1]]])
     return start, end
 
 
-def test_move_residual_matches_geometry_and_differences(poses):
+# Both sides are float64 evaluations of the same smooth expressions: they agree to a few ulp
+# of O(1-10) numbers; 1e-12 allows that and nothing more.
+EXACT = 1e-12
+
+
+def test_move_residuals_match_the_numpy_reference(poses):
     start, end = poses
     delta = np.random.default_rng(1).normal(size=start.shape) * 0.1
-    error, jac_start, jac_end = smoothing.move_residuals(start, end, delta)
-    expected = np.asarray(relative(jnp.asarray(start, F64), jnp.asarray(end, F64))) - delta
-    expected[:, 2] = (expected[:, 2] + np.pi) % (2 * np.pi) - np.pi
-    np.testing.assert_allclose(error, expected, atol=1e-12)
+    got = smoothing.move_residuals(start, end, delta)
+    for value, want in zip(got, numpy_move_residual(start, end, delta)):
+        assert value.dtype == np.float64
+        np.testing.assert_allclose(value, want, atol=EXACT)
+    # Across +-pi the heading error is the small turn, not ~2 pi.
+    assert np.all(np.abs(got[0][20:, 2]) < 0.4)
     for n in range(len(start)):
         # Central differences with h = 1e-6 on O(1) smooth functions: error ~h^2, round-off
         # ~1e-16 / h = 1e-10; 1e-7 covers both.
-        np.testing.assert_allclose(jac_start[n], numeric_jacobian(
+        np.testing.assert_allclose(got[1][n], numeric_jacobian(
             lambda x: smoothing.move_residuals(x[None], end[n:n + 1], delta[n:n + 1])[0][0],
             start[n]), atol=1e-7)
-        np.testing.assert_allclose(jac_end[n], numeric_jacobian(
+        np.testing.assert_allclose(got[2][n], numeric_jacobian(
             lambda x: smoothing.move_residuals(start[n:n + 1], x[None], delta[n:n + 1])[0][0],
             end[n]), atol=1e-7)
 
 
-def test_observation_residual_matches_geometry_and_differences(poses):
+def test_observation_residuals_match_the_numpy_reference(poses):
     pose, point = poses[0], poses[1][:, :2] + 3.0
     z = np.asarray(range_bearing(jnp.asarray(pose, F64), jnp.asarray(point, F64)))
-    error, jac_pose, jac_point = smoothing.observation_residuals(pose, point, z)
-    np.testing.assert_allclose(error, 0.0, atol=1e-12)
-    shifted = z + np.array([0.3, -0.2])
-    error = smoothing.observation_residuals(pose, point, shifted)[0]
-    np.testing.assert_allclose(error, np.broadcast_to([-0.3, 0.2], error.shape), atol=1e-12)
-    for n in range(len(pose)):
-        np.testing.assert_allclose(jac_pose[n], numeric_jacobian(
+    z = z + np.random.default_rng(2).normal(size=z.shape) * [0.3, 0.2]
+    got = smoothing.observation_residuals(pose, point, z)
+    for value, want in zip(got, numpy_observation_residual(pose, point, z)):
+        assert value.dtype == np.float64
+        np.testing.assert_allclose(value, want, atol=EXACT)
+    for n in range(len(pose)):  # tolerance as for the moves
+        np.testing.assert_allclose(got[1][n], numeric_jacobian(
             lambda x: smoothing.observation_residuals(x[None], point[n:n + 1],
                                                       z[n:n + 1])[0][0], pose[n]), atol=1e-7)
-        np.testing.assert_allclose(jac_point[n], numeric_jacobian(
+        np.testing.assert_allclose(got[2][n], numeric_jacobian(
             lambda x: smoothing.observation_residuals(pose[n:n + 1], x[None],
                                                       z[n:n + 1])[0][0], point[n]), atol=1e-7)
 
 
-@pytest.mark.parametrize("odometry", [[0.3, 1.2, -0.1], [0.0, 0.0, 0.4], [-2.0, 0.05, 1.5]])
-def test_move_whitening_inverts_the_propagated_covariance(odometry):
-    params = default_params()
+def factor_with_jacobians(residual, a, b, measured):
+    return (residual(a, b, measured),) + jax.jacfwd(residual, argnums=(0, 1))(a, b, measured)
+
+
+@pytest.mark.parametrize("variant", ["eager", "jit", "vmap", "jit_vmap"])
+@pytest.mark.parametrize("factor", ["move", "observation"])
+def test_factor_functions_under_jit_and_vmap(poses, factor, variant):
+    """The per-factor functions the host entry points vmap: eager row by row, jitted, vmapped
+    and both, each against the NumPy reference."""
+    start, end = poses
+    if factor == "move":
+        residual, reference = residuals.move_residual, numpy_move_residual
+        args = (start, end, np.random.default_rng(1).normal(size=start.shape) * 0.1)
+    else:
+        residual, reference = residuals.observation_residual, numpy_observation_residual
+        args = (start, end[:, :2] + 3.0, np.random.default_rng(2).normal(size=(len(start), 2)))
+    one = jax.jit(factor_with_jacobians, static_argnums=0) if variant == "jit" else (
+        factor_with_jacobians)
+    if variant in ("eager", "jit"):  # row by row: two random moves and the four across pi
+        args = tuple(a[[0, 1, 20, 21, 22, 23]] for a in args)
+        rows = [one(residual, *(jnp.asarray(a[n], F64) for a in args)) for n in range(6)]
+        got = [np.stack([np.asarray(row[i]) for row in rows]) for i in range(3)]
+    else:
+        batched = jax.vmap(lambda *a: factor_with_jacobians(residual, *a))
+        batched = jax.jit(batched) if variant == "jit_vmap" else batched
+        got = batched(*(jnp.asarray(a, F64) for a in args))
+    for value, want in zip(got, reference(*args)):
+        np.testing.assert_allclose(value, want, atol=EXACT)
+
+
+def test_a_landmark_at_the_sensor_has_finite_residual_and_jacobians():
+    """A point exactly at the sensor has no bearing: residual (0, -theta) - z, a zero Jacobian
+    in the point and the position, -1 in the heading; a point 1 mm away is the model itself."""
+    pose = np.array([[1.0, 2.0, 0.3], [-4.0, 0.5, -3.0], [1.0, 2.0, 0.3]])
+    point = np.array([[1.0, 2.0], [-4.0, 0.5], [1.0, 2.001]])
+    z = np.array([[0.5, 0.1], [0.2, -0.4], [0.01, 1.0]])
+    for error, jac_pose, jac_point in [
+            smoothing.observation_residuals(pose, point, z),
+            jax.jit(jax.vmap(lambda *a: factor_with_jacobians(residuals.observation_residual,
+                                                              *a)))(pose, point, z)]:
+        np.testing.assert_allclose(error[:2, 0], -z[:2, 0], atol=EXACT)
+        np.testing.assert_allclose(error[:2, 1], numpy_wrap(-pose[:2, 2] - z[:2, 1]),
+                                   atol=EXACT)
+        np.testing.assert_array_equal(jac_point[:2], 0.0)
+        np.testing.assert_array_equal(jac_pose[:2], np.broadcast_to([[0, 0, 0], [0, 0, -1.0]],
+                                                                    (2, 2, 3)))
+        # 1 mm away: the ordinary model (its point Jacobian ~1e3 in the bearing row).
+        for value, want in zip((error, jac_pose, jac_point),
+                               numpy_observation_residual(pose[2:], point[2:], z[2:])):
+            np.testing.assert_allclose(value[2:], want, rtol=1e-12, atol=EXACT)
+
+
+def test_host_entry_points_keep_float64_with_x64_off():
+    """The host functions enable float64 for their own call: poses 1e6 m from the origin,
+    moved by millimetres, keep their digits (float32 would lose ~0.06 m)."""
+    rng = np.random.default_rng(5)
+    start = np.c_[1e6 + rng.normal(size=(5, 2)), rng.uniform(-3, 3, 5)]
+    end = start + rng.normal(size=(5, 3)) * 1e-3
+    point = start[:, :2] + 5.0
+    z = rng.normal(size=(5, 2))
+    with jax.enable_x64(False):
+        move = smoothing.move_residuals(start, end, np.zeros((5, 3)))
+        obs = smoothing.observation_residuals(start, point, z)
+        landmark = smoothing.initial_landmarks(start, z[:, None], np.arange(5)[:, None], 5)
+        assert jnp.zeros(1).dtype == jnp.float32  # the global setting is left as it was
+    # Round-off of 1e6 m coordinates in float64 is ~1e-10 m.
+    np.testing.assert_allclose(move[0], numpy_move_residual(start, end, np.zeros((5, 3)))[0],
+                               atol=1e-9)
+    np.testing.assert_allclose(obs[0], numpy_observation_residual(start, point, z)[0],
+                               atol=1e-9)
+    heading = start[:, 2] + z[:, 1]
+    np.testing.assert_allclose(landmark, start[:, :2] + z[:, :1] * np.c_[np.cos(heading),
+                                                                      np.sin(heading)],
+                               atol=1e-9)
+
+
+@pytest.mark.parametrize("size", [0, 1, 16, 17])
+def test_batch_padding_is_cut_off(poses, size):
+    """Batches are padded to a power of two for compilation; the outputs keep their size and
+    are writable NumPy arrays."""
+    start, end = poses[0][:size], poses[1][:size]
+    error, jac_start, jac_end = smoothing.move_residuals(start, end, np.zeros_like(start))
+    chex.assert_shape([error, jac_start, jac_end], [(size, 3), (size, 3, 3), (size, 3, 3)])
+    error[...] = 0.0  # writable
+    np.testing.assert_allclose(jac_end, numpy_move_residual(start, end, 0 * start)[2],
+                               atol=EXACT)
+
+
+@pytest.mark.parametrize("odometry", [[0.3, 1.2, -0.1], [0.0, 0.0, 0.4], [-2.0, 0.05, 1.5],
+                                      [3.1, 0.7, 3.1]])
+def test_move_whitening_matches_the_numpy_reference(odometry):
+    params = default_params(rot1_noise=(0.02, 0.1, 0.01), trans_noise=(0.05, 0.02, 0.01))
     odometry = np.array([odometry], np.float64)
     delta, white = smoothing.move_whitening(odometry, params)
-    expected = np.asarray(apply_odometry(jnp.zeros(3, F64), jnp.asarray(odometry[0], F64)))
-    np.testing.assert_allclose(delta[0], expected, atol=1e-12)
-    # Reference: the motion model's own Eq. (1) stds, the Jacobian of apply_odometry by
-    # central differences, plus the 1 mm floor in x and y.
-    std = np.asarray(odometry_std(jnp.asarray(odometry[0], F64), params))
-    jac = numeric_jacobian(lambda o: np.asarray(apply_odometry(jnp.zeros(3, F64),
-                                                               jnp.asarray(o, F64))),
-                           odometry[0])
-    cov = jac @ np.diag(std**2) @ jac.T + np.diag([1e-6, 1e-6, 0.0])
-    # W C W^T = I. The differenced Jacobian is exact to ~1e-10 (trig functions, h = 1e-6),
-    # and W scales it by at most 1 / sqrt(smallest eigenvalue of C) ~ 1e3: 1e-6 is loose.
+    want_delta, want_white, std = numpy_move_whitening(odometry, params)
+    np.testing.assert_allclose(delta, want_delta, atol=EXACT)
+    # C's eigenvalues span the 1 mm floor (1e-6) to ~1: round-off of ~1e-16 in C becomes
+    # ~1e-10 relative in W, whose entries reach 1e3.
+    np.testing.assert_allclose(white, want_white, rtol=1e-9, atol=1e-7)
+    # Independent of both Jacobians: W C W^T = I with C from central differences of delta
+    # (exact to ~1e-10, scaled by W up to 1e3: 1e-6 is loose).
+    jac = numeric_jacobian(lambda o: numpy_move_whitening(o[None], params)[0][0], odometry[0])
+    cov = jac @ np.diag(std[0] ** 2) @ jac.T + np.diag([1e-6, 1e-6, 0.0])
     np.testing.assert_allclose(white[0] @ cov @ white[0].T, np.eye(3), atol=1e-6)
     # Row 0 sees the heading error only (the NoiseScales heading group); the inverse of the
     # triangular factor leaves round-off (~1e-15) where exact zeros belong.
@@ -100,14 +248,16 @@ def test_move_whitening_inverts_the_propagated_covariance(odometry):
     np.testing.assert_allclose(white[0][0, 2], 1.0 / np.sqrt(cov[2, 2]), rtol=1e-9)
 
 
-def test_observation_weights_are_the_filters_measurement_noise():
-    # The smoother's float64 copy of ekf.measurement_std (floors included) must agree with it.
+def test_observation_std_is_table_2_with_floors():
     params = default_params(range_noise=(0.01, 0.3), bearing_noise=(0.001, 0.02),
                             range_std_floor=0.35, bearing_std_floor=0.025)
     z_range = np.array([0.0, 1.0, 5.0, 20.0, 60.0])
-    sigma_range, sigma_bearing = measurement_std(jnp.asarray(z_range, F64), params)
-    np.testing.assert_allclose(smoothing._observation_std(z_range, params),
-                               np.stack([sigma_range, sigma_bearing], 1), rtol=1e-12)
+    # float32 parameters taken exactly into float64 (as the filter stores them).
+    c = {name: np.float64(np.float32(v)) for name, v in
+         dict(r0=0.01, r1=0.3, b0=0.001, b1=0.02, rf=0.35, bf=0.025).items()}
+    want = np.stack([np.maximum(c["r0"] * z_range + c["r1"], c["rf"]),
+                     np.maximum(c["b0"] * z_range + c["b1"], c["bf"])], 1)
+    np.testing.assert_allclose(smoothing.observation_std(z_range, params), want, rtol=1e-15)
 
 
 def test_zero_heading_noise_is_named():
@@ -123,10 +273,10 @@ def test_variance_factors_match_the_exact_redundancy():
     jacobian = scipy.sparse.csr_matrix(rng.normal(size=(60, 12)))
     residual = rng.normal(size=60)
     steps, num_obs = 4, 24  # rows: 12 move rows (4 heading, 8 translation), 48 observation
-    factors = smoothing._variance_factors(residual, jacobian, steps, num_obs, probes=4000)
+    factors = solver.variance_factors(residual, jacobian, steps, num_obs, probes=4000)
     dense = jacobian.toarray()
     hat = dense @ np.linalg.solve(dense.T @ dense, dense.T)
-    for factor, rows in zip(factors, smoothing._group_rows(steps, num_obs)):
+    for factor, rows in zip(factors, solver.group_rows(steps, num_obs)):
         exact = np.sum(residual[rows] ** 2) / (rows.size - np.trace(hat[np.ix_(rows, rows)]))
         # 4000 Rademacher probes: the trace's relative error is ~ sqrt(2 / 4000) = 2 %.
         np.testing.assert_allclose(factor, exact, rtol=0.1)
@@ -260,9 +410,21 @@ def loop_problem(seed, steps=80, num_trees=25, heading_noise=0.01):
 def position_rmse(path, truth):
     """Position RMSE after the best rigid fit: the start pose and first move fix the frame
     only up to that move's noise (0.01 rad swings an 8 m circle by 8 cm)."""
-    angle, translation = rigid_align_2d(path[:, :2], truth[:, :2])
-    aligned = rigid_transform_2d(path[:, :2], angle, translation)
-    return float(np.sqrt(np.mean(np.sum((aligned - truth[:, :2]) ** 2, axis=1))))
+    source, target = path[:, :2] - path[:, :2].mean(0), truth[:, :2] - truth[:, :2].mean(0)
+    angle = np.arctan2(np.sum(source[:, 0] * target[:, 1] - source[:, 1] * target[:, 0]),
+                       np.sum(source * target))  # the least-squares rotation (2-D Kabsch)
+    rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    return float(np.sqrt(np.mean(np.sum((source @ rotation.T - target) ** 2, axis=1))))
+
+
+def odometry_path(odometry, start):
+    """Dead reckoning (T, 3): the odometry model x' = x + trans cos(theta + rot1), ...,
+    theta' = theta + rot1 + rot2 unrolled by cumulative sums from ``start`` (3,)."""
+    rot1, trans, rot2 = odometry.T
+    heading = start[2] + np.cumsum(rot1 + rot2)
+    direction = np.concatenate([[start[2]], heading[:-1]]) + rot1
+    return np.stack([start[0] + np.cumsum(trans * np.cos(direction)),
+                     start[1] + np.cumsum(trans * np.sin(direction)), numpy_wrap(heading)], 1)
 
 
 def test_smoothing_recovers_the_truth_from_exact_data():
@@ -482,7 +644,7 @@ def test_largest_visit_places_each_landmark():
     # a tie: the earlier visit); landmark 1 has no visit and stays at the origin.
     position = np.array([[1.0, 1.0], [2.0, 2.0], [3.0, 3.0], [4.0, 4.0]])
     visit_of_obs = np.array([[0, 1, 2], [2, 1, 2], [3, 3, -1]])
-    landmark = smoothing._largest_visit(position, visit_of_obs, np.array([0, 2, 0, 2]))
+    landmark = largest_visit(position, visit_of_obs, np.array([0, 2, 0, 2]))
     np.testing.assert_array_equal(landmark, [[3.0, 3.0], [0.0, 0.0], [2.0, 2.0]])
 
 
@@ -494,19 +656,19 @@ def test_link_rows_match_differences():
     params = default_params()
     delta, white = smoothing.move_whitening(odometry, params)
     t, k = np.nonzero(visit_of_obs >= 0)
-    problem = smoothing._Problem(truth[0], delta, white, t, visit_of_obs[t, k], z[t, k],
-                                 smoothing._observation_std(z[t, k, 0], params), 3.0, links,
-                                 0.1, 1e9)  # a huge threshold: link weights 1 (plain squares)
+    problem = lsq.Problem(truth[0], delta, white, t, visit_of_obs[t, k], z[t, k],
+                          smoothing.observation_std(z[t, k, 0], params), 3.0, links, 0.1,
+                          1e9)  # a huge threshold: link weights 1 (plain squares)
     rng = np.random.default_rng(3)
     landmark = rng.normal(size=(len(visit_landmark), 2))
-    residual, jacobian, _ = smoothing._linearize(problem, truth[1:], landmark)
+    residual, jacobian, _ = lsq.linearize(problem, truth[1:], landmark)
     rows = slice(residual.size - 2 * len(links), None)
     x = np.concatenate([truth[1:].ravel(), landmark.ravel()])
     steps = truth.shape[0] - 1
 
     def link_residual(vector):
-        return smoothing._whitened(problem, vector[:3 * steps].reshape(-1, 3),
-                                   vector[3 * steps:].reshape(-1, 2)).link.ravel()
+        return lsq.whitened(problem, vector[:3 * steps].reshape(-1, 3),
+                            vector[3 * steps:].reshape(-1, 2)).link.ravel()
 
     np.testing.assert_allclose(residual[rows], link_residual(x), atol=1e-12)
     # Linear in the landmarks: central differences are exact up to round-off (1e-16 / 1e-6).
@@ -522,9 +684,9 @@ def test_robust_gradient_matches_the_cost():
     params = default_params()
     delta, white = smoothing.move_whitening(odometry, params)
     t, k = np.nonzero(visit_of_obs >= 0)
-    problem = smoothing._Problem(truth[0], delta, white, t, visit_of_obs[t, k], z[t, k],
-                                 smoothing._observation_std(z[t, k, 0], params), 1.0, links,
-                                 0.2, 2.0)
+    problem = lsq.Problem(truth[0], delta, white, t, visit_of_obs[t, k], z[t, k],
+                          smoothing.observation_std(z[t, k, 0], params), 1.0, links, 0.2,
+                          2.0)
     rng = np.random.default_rng(4)
     tree = np.zeros((len(visit_landmark), 2))
     tree[visit_of_obs[t, k]] = smoothing.initial_landmarks(truth[1:], z, ids, 25)[ids[t, k]]
@@ -532,14 +694,14 @@ def test_robust_gradient_matches_the_cost():
     # 0.4 m) and many observations past the Huber threshold (1).
     landmark = tree + rng.normal(size=tree.shape) * 0.5
     path = truth[1:] + rng.normal(size=truth[1:].shape) * [0.05, 0.05, 0.01]
-    norms = np.linalg.norm(smoothing._whitened(problem, path, landmark).link, axis=1)
+    norms = np.linalg.norm(lsq.whitened(problem, path, landmark).link, axis=1)
     assert norms.min() < 2.0 < 6.0 < norms.max()
-    residual, jacobian, _ = smoothing._linearize(problem, path, landmark)
+    residual, jacobian, _ = lsq.linearize(problem, path, landmark)
     steps = len(path)
 
     def cost(vector):
-        return np.array([smoothing._cost(problem, vector[:3 * steps].reshape(-1, 3),
-                                         vector[3 * steps:].reshape(-1, 2))])
+        return np.array([lsq.cost(problem, vector[:3 * steps].reshape(-1, 3),
+                                  vector[3 * steps:].reshape(-1, 2))])
 
     x = np.concatenate([path.ravel(), landmark.ravel()])
     numeric = numeric_jacobian(cost, x, step=1e-6)[0]
@@ -550,14 +712,14 @@ def test_robust_gradient_matches_the_cost():
 
 def test_geman_mcclure_weight_is_the_irls_weight_of_its_loss():
     norm = np.linspace(0.0, 20.0, 41)[1:]
-    weight, rho = smoothing._geman_mcclure_weight(norm, 3.0)
+    weight, rho = lsq.geman_mcclure_weight(norm, 3.0)
     # IRLS: w^2 = rho'(n) / (2 n); rho' by central differences (error ~1e-10 at step 1e-5).
     step = 1e-5
-    derivative = (smoothing._geman_mcclure_weight(norm + step, 3.0)[1]
-                  - smoothing._geman_mcclure_weight(norm - step, 3.0)[1]) / (2 * step)
+    derivative = (lsq.geman_mcclure_weight(norm + step, 3.0)[1]
+                  - lsq.geman_mcclure_weight(norm - step, 3.0)[1]) / (2 * step)
     np.testing.assert_allclose(weight**2, derivative / (2 * norm), rtol=1e-6)
     assert np.all(rho < 9.0)  # bounded by c^2: a dropped link costs at most that
-    weight_at = smoothing._geman_mcclure_weight(np.array([0.0, 3.0]), 3.0)[0]
+    weight_at = lsq.geman_mcclure_weight(np.array([0.0, 3.0]), 3.0)[0]
     np.testing.assert_allclose(weight_at, [1.0, 0.5])  # full weight at 0, half at c
 
 
@@ -625,9 +787,9 @@ def _visit_problem(seed=0, steps=24, self_link=False):
     params = default_params()
     delta, white = smoothing.move_whitening(odometry, params)
     t, k = np.nonzero(visit_of_obs >= 0)
-    problem = smoothing._Problem(truth[0], delta, white, t, visit_of_obs[t, k], z[t, k],
-                                 smoothing._observation_std(z[t, k, 0], params), 1.0, links,
-                                 0.2, 2.0)
+    problem = lsq.Problem(truth[0], delta, white, t, visit_of_obs[t, k], z[t, k],
+                          smoothing.observation_std(z[t, k, 0], params), 1.0, links, 0.2,
+                          2.0)
     rng = np.random.default_rng(seed + 1)
     landmark = rng.normal(size=(len(visit_landmark), 2)) * 5.0
     path = truth[1:] + rng.normal(size=truth[1:].shape) * [0.05, 0.05, 0.01]
@@ -636,21 +798,21 @@ def _visit_problem(seed=0, steps=24, self_link=False):
 
 def _coo_jacobian(problem, path, landmark):
     """The Jacobian built from (row, column, value) triplets (duplicates summed)."""
-    pattern = smoothing._jacobian_pattern(problem, len(path), len(landmark))
+    pattern = lsq.jacobian_pattern(problem, len(path), len(landmark))
     if pattern.order is not None:  # recover the triplets from the CSR pattern
         rows = np.repeat(np.arange(pattern.shape[0]), np.diff(pattern.indptr))
         triplet_rows, triplet_cols = np.empty_like(rows), np.empty_like(rows)
         triplet_rows[pattern.order], triplet_cols[pattern.order] = rows, pattern.indices
         pattern = pattern._replace(indptr=None, indices=None, order=None, rows=triplet_rows,
                                    cols=triplet_cols)
-    return smoothing._linearize(problem, path, landmark, pattern)
+    return lsq.linearize(problem, path, landmark, pattern)
 
 
 @pytest.mark.parametrize("self_link", [False, True])
 def test_jacobian_pattern_fills_the_same_matrix_as_triplets(self_link):
     problem, path, landmark = _visit_problem(self_link=self_link)
-    residual, jacobian, cost = smoothing._linearize(problem, path, landmark)
-    assert (smoothing._jacobian_pattern(problem, len(path), len(landmark)).order is None
+    residual, jacobian, cost = lsq.linearize(problem, path, landmark)
+    assert (lsq.jacobian_pattern(problem, len(path), len(landmark)).order is None
             ) == self_link
     want_residual, want_jacobian, want_cost = _coo_jacobian(problem, path, landmark)
     # The same numbers placed in the same entries: equal to the last bit.
@@ -661,10 +823,10 @@ def test_jacobian_pattern_fills_the_same_matrix_as_triplets(self_link):
 
 def test_factorizer_reuses_its_order_and_solves_exactly():
     problem, path, landmark = _visit_problem(seed=2, steps=40)
-    _, jacobian, _ = smoothing._linearize(problem, path, landmark)
+    _, jacobian, _ = lsq.linearize(problem, path, landmark)
     hessian = (jacobian.T @ jacobian).tocsc()
     rng = np.random.default_rng(0)
-    factorize = smoothing._Factorizer()
+    factorize = solver.Factorizer()
     orders = []
     for lam in (1e-6, 1e-2, 10.0):  # the LM steps' damped matrices: one pattern
         damped = hessian + scipy.sparse.diags(lam * np.maximum(hessian.diagonal(), 1e-9))
@@ -700,7 +862,7 @@ def test_reused_order_gives_the_same_smoothing_as_fresh_factorisations(monkeypat
                                             permc_spec="MMD_AT_PLUS_A",
                                             options=dict(SymmetricMode=True)).solve
 
-    monkeypatch.setattr(smoothing, "_Factorizer", Fresh)
+    monkeypatch.setattr(solver, "Factorizer", Fresh)
     fresh = smoothing.smooth_path(truth[0], drifted, odometry, z, ids, params,
                                   calibrate_rounds=2, tol=1e-8)
     assert kept.iterations == fresh.iterations

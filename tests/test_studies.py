@@ -25,7 +25,8 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from jaxslam import studies
+from jaxslam import studies, study_store
+from jaxslam.types import Params
 
 PYTHON = sys.executable
 REPO = pathlib.Path(__file__).resolve().parent.parent
@@ -438,9 +439,9 @@ def test_tools_read_the_runs_folder_whole(study_3):
 
 def test_no_measured_column_shares_a_config_key(study_3):
     config, _, result = study_3
-    keys = {k.rsplit(".", 1)[-1] for k in studies.study_store._flatten(
+    keys = {k.rsplit(".", 1)[-1] for k in study_store._flatten(
         studies.study_config_to_dict(config))}
-    keys |= set(studies.Params._fields)
+    keys |= set(Params._fields)
     swept = {name for name, _ in config.sweep}
     clashes = (set(result.table.column_names) - swept) & keys
     assert not clashes, clashes

@@ -99,7 +99,7 @@ def _failing_start(config, out, monkeypatch):
     def simulate(*args, **kwargs):
         raise _Stop("simulator failed")
 
-    monkeypatch.setattr(studies, "scenario_batch", simulate)
+    monkeypatch.setattr(studies.runner, "scenario_batch", simulate)  # where the runner looks
     with pytest.raises(_Stop):
         studies.run_study(config, out, progress=False)
 

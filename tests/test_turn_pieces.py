@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from jaxslam import proposal
-from jaxslam.filter import _init, _propose, _step
+from jaxslam.filter import _init, _step
+from jaxslam.step_propose import propose
 from jaxslam.types import FilterConfig, Observations, default_params
 
 POSE = np.array([1.0, -2.0, 0.4])
@@ -137,7 +138,7 @@ def _far_turn_case(turn_pieces):
 def test_a_far_turn_is_proposed_at_the_truth_only_with_turn_pieces(turn_pieces):
     config, params, state, control, obs, truth = _far_turn_case(turn_pieces)
     poses, _, correction, used_obs = jax.jit(
-        lambda key: _propose(config, key, params, state.particles, control, obs,
+        lambda key: propose(config, key, params, state.particles, control, obs,
                              jnp.float32(1.0), jnp.asarray(False)))(jax.random.PRNGKey(0))
     near = np.hypot(*(np.asarray(poses[:, :2]) - truth[:2]).T) < 0.02
     assert np.all(np.isfinite(np.asarray(correction)))

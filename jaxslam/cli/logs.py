@@ -48,12 +48,13 @@ def _add_topic_options(parser: argparse.ArgumentParser, prefix: str = "") -> Non
 
 
 def _load_robot_log(path, args=None):
-    """The ``RobotLog`` at ``path``: a ROS bag (``jaxslam.datasets.rosbag.is_rosbag_path``:
+    """The ``RobotLog`` at ``path``: a ROS bag (``jaxslam.datasets.rosbag_reader.is_rosbag_path``:
     a .bag/.db3/.mcap name or a folder with metadata.yaml), read with the bag options of
     ``args``, else a jaxslam .npz log. Any problem with the file becomes a one-line
     ``UsageError``."""
     from jaxslam.datasets.log_format import LogFormatError, load_log
-    from jaxslam.datasets.rosbag import is_rosbag_path, load_rosbag
+    from jaxslam.datasets.rosbag import load_rosbag
+    from jaxslam.datasets.rosbag_reader import is_rosbag_path
 
     try:
         if is_rosbag_path(path):
@@ -252,7 +253,7 @@ def cmd_convert(args) -> int:
     import numpy as np
 
     from jaxslam.datasets.log_format import LogFormatError, load_log, save_log
-    from jaxslam.datasets.rosbag import resolve_bag_path
+    from jaxslam.datasets.rosbag_reader import resolve_bag_path
 
     try:
         resolve_bag_path(args.bag)

@@ -23,12 +23,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxslam.datasets.log_format import (
-    VICTORIA_PARK_VEHICLE,
-    RobotLog,
-    integrate_controls,
-    odometry_path,
-)
+from jaxslam.host import in_float64
+from jaxslam.datasets.log_format import RobotLog
+from jaxslam.datasets.odometry import VICTORIA_PARK_VEHICLE, integrate_controls, odometry_path
+from jaxslam.metrics import align_se2, transform_points
 
 ENV_DATA_DIR = "JAXSLAM_VICTORIA_PARK"
 ENV_CACHE_DIR = "JAXSLAM_CACHE_DIR"
@@ -268,7 +266,8 @@ def victoria_park_log(data: VictoriaPark, max_range: float = 75.0,
 
 
 class GpsError(NamedTuple):
-    """Position error of a path against GPS after a rigid SE(2) fit (no scale).
+    """Position error of a path against GPS after a rigid SE(2) fit (no scale,
+    ``jaxslam.metrics.align_se2``).
 
     Attributes:
       mean / rmse / median / max: error statistics [m] over the G' GPS fixes used.
@@ -287,24 +286,12 @@ class GpsError(NamedTuple):
 
 
 def rigid_transform_2d(points, angle, translation):
-    """R(angle) p + translation for points (..., 2): rotation [rad], translation (2,)."""
-    cos, sin = np.cos(angle), np.sin(angle)
-    points = np.asarray(points, np.float64)
-    return np.stack([cos * points[..., 0] - sin * points[..., 1],
-                     sin * points[..., 0] + cos * points[..., 1]], -1) + translation
+    """R(angle) p + translation for points (..., 2): rotation [rad], translation (2,).
 
-
-def rigid_align_2d(source, target):
-    """Least-squares rotation angle and translation mapping source (N, 2) onto target (N, 2).
-
-    Kabsch / Umeyama without scale: the 2-D closed form angle = atan2(sum cross, sum dot) of
-    the centred point pairs. Returns (angle [rad], translation (2,)).
+    ``jaxslam.metrics.transform_points`` in float64, the alignment given as angle and shift.
     """
-    source_c, target_c = source - source.mean(0), target - target.mean(0)
-    dot = np.sum(source_c * target_c)
-    cross = np.sum(source_c[:, 0] * target_c[:, 1] - source_c[:, 1] * target_c[:, 0])
-    angle = np.arctan2(cross, dot)
-    return float(angle), target.mean(0) - rigid_transform_2d(source.mean(0), angle, 0.0)
+    alignment = np.append(np.broadcast_to(np.asarray(translation, np.float64), (2,)), angle)
+    return in_float64(transform_points, alignment, points)
 
 
 def gps_error(path_time, path_xy, gps_time, gps_xy, fit_until: float | None = None) -> GpsError:
@@ -317,8 +304,9 @@ def gps_error(path_time, path_xy, gps_time, gps_xy, fit_until: float | None = No
     times, targets = gps_time[inside], gps_xy[inside]
     at_gps = np.stack([np.interp(times, path_time, path_xy[:, i]) for i in range(2)], -1)
     fit = np.ones(times.shape, bool) if fit_until is None else times <= fit_until
-    angle, translation = rigid_align_2d(at_gps[fit], targets[fit])
-    aligned = rigid_transform_2d(at_gps, angle, translation)
+    alignment = in_float64(align_se2, at_gps[fit], targets[fit])  # (x, y, angle)
+    aligned = in_float64(transform_points, alignment, at_gps)
+    angle, translation = float(alignment[2]), alignment[:2]
     error = np.linalg.norm(aligned - targets, axis=-1)
     return GpsError(mean=float(error.mean()), rmse=float(np.sqrt(np.mean(error ** 2))),
                     median=float(np.median(error)), max=float(error.max()), rotation=angle,

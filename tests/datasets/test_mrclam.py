@@ -12,14 +12,9 @@ import numpy as np
 import pytest
 
 from jaxslam.datasets import mrclam as mm
-from jaxslam.datasets.log_format import (
-    LogFormatError,
-    load_log,
-    odometry_path,
-    save_log,
-    validate_log,
-    wrap_angle_np,
-)
+from jaxslam.datasets import mrclam_convert as mc
+from jaxslam.datasets.log_format import LogFormatError, load_log, save_log, validate_log
+from jaxslam.datasets.odometry import odometry_path
 
 DATA_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "mrclam1"
 
@@ -48,6 +43,11 @@ MEASUREMENTS = [
 TIMES = [1.0, 1.41, 2.0, 3.0, 4.6, 5.2]
 
 
+
+def _wrap(angle):
+    """Wrap to [-pi, pi) in NumPy float64 (the floor formula of jaxslam.geometry.wrap_angle)."""
+    return angle - 2.0 * np.pi * np.floor((angle + np.pi) / (2.0 * np.pi))
+
 def _commands(time):
     speed = np.where(time < 4.0, SPEED, 0.0)
     rate = np.where((time >= 2.0) & (time < 4.0), TURN_RATE, 0.0)
@@ -56,7 +56,7 @@ def _commands(time):
 
 def _truth(time):
     time = np.minimum(time, (ROWS - 1) / RATE)  # held after the last Vicon row
-    return np.stack([1.0 + 0.1 * time, 2.0 - 0.05 * time, wrap_angle_np(3.0 + 0.1 * time)], -1)
+    return np.stack([1.0 + 0.1 * time, 2.0 - 0.05 * time, _wrap(3.0 + 0.1 * time)], -1)
 
 
 def _write(path, rows, header=""):
@@ -125,7 +125,7 @@ def test_euler_reference_is_close_to_the_exact_arc():
 
 def test_steps_at_distinct_measurement_times(root):
     run = mm.read_mrclam(root, 1)
-    steps = mm.mrclam_steps(run, max_obs=2, max_gap=None)
+    steps = mc.mrclam_steps(run, max_obs=2, max_gap=None)
     np.testing.assert_array_equal(steps.time, TIMES)
     assert (steps.num_robot_sightings, steps.num_unknown_barcodes) == (3, 1)
     assert (steps.num_truncated, steps.num_before_start, steps.num_filler_steps) == (1, 0, 0)
@@ -161,23 +161,23 @@ def test_dead_reckoning_from_the_initial_pose(root):
     start = np.array([1.0 + 0.2 * np.cos(3.0), 2.0 + 0.2 * np.sin(3.0), 3.0])
     rotated = np.array([np.cos(3.0) * x - np.sin(3.0) * y, np.sin(3.0) * x + np.cos(3.0) * y])
     np.testing.assert_allclose(path[-1, :2], start[:2] + rotated, rtol=0, atol=1e-12)
-    assert path[-1, 2] == pytest.approx(wrap_angle_np(3.0 + theta), abs=1e-12)
+    assert path[-1, 2] == pytest.approx(_wrap(3.0 + theta), abs=1e-12)
 
 
 def test_filler_steps_cut_long_gaps(root):
     run = mm.read_mrclam(root, 1)
-    steps = mm.mrclam_steps(run, max_gap=1.0)  # only 3.0 -> 4.6 is longer than 1 s
+    steps = mc.mrclam_steps(run, max_gap=1.0)  # only 3.0 -> 4.6 is longer than 1 s
     np.testing.assert_allclose(steps.time, [1.0, 1.41, 2.0, 3.0, 3.8, 4.6, 5.2], atol=1e-12)
     assert steps.num_filler_steps == 1 and not steps.obs_valid[4].any()
-    log = mm.mrclam_log(run, steps)
+    log = mc.mrclam_log(run, steps)
     # 3.0 -> 3.8: 40 Euler steps of turning; 3.8 -> 4.6: 10 more, then standing still.
     expected = np.stack([STRAIGHT[1.0], STRAIGHT[0.41], STRAIGHT[0.59], ARC,
                          move(*euler_arc(40)), move(*euler_arc(10)), STILL])
     np.testing.assert_allclose(log.controls, expected, rtol=0, atol=1e-12)
     np.testing.assert_allclose(log.truth_pose[4], _truth(np.array(3.8)), rtol=0, atol=1e-12)
     np.testing.assert_allclose(
-        mm.fill_gaps(np.array([1.0, 2.0]), 0.0, 0.4), [1 / 3, 2 / 3, 4 / 3, 5 / 3], atol=1e-12)
-    assert mm.fill_gaps(np.array([1.0, 2.0]), 0.0, None).shape == (0,)
+        mc.fill_gaps(np.array([1.0, 2.0]), 0.0, 0.4), [1 / 3, 2 / 3, 4 / 3, 5 / 3], atol=1e-12)
+    assert mc.fill_gaps(np.array([1.0, 2.0]), 0.0, None).shape == (0,)
 
 
 # ---------------------------------------------------------------------------- synthetic: bins
@@ -185,17 +185,17 @@ def test_filler_steps_cut_long_gaps(root):
 
 def test_bins_of_step_dt(root):
     run = mm.read_mrclam(root, 1)
-    steps = mm.mrclam_steps(run, max_obs=2, step_dt=1.0)
+    steps = mc.mrclam_steps(run, max_obs=2, step_dt=1.0)
     np.testing.assert_allclose(steps.time, [1.0, 2.0, 3.0, 4.0, 5.0, 6.0], atol=1e-12)
     # (0,1]: 72, 27;  (1,2]: 54 at 1.41, 54 at 2.0 (time order);  (2,3]: 72, 27 (+54 cut);
     # (3,4]: only robot 3;  (4,5]: 27;  (5,6]: 72.
     np.testing.assert_array_equal(
         steps.obs_landmark, [[0, 1], [2, 2], [0, 1], [-1, -1], [1, -1], [0, -1]])
     assert steps.num_truncated == 1 and steps.num_filler_steps == 0
-    log = mm.mrclam_log(run, steps)
+    log = mc.mrclam_log(run, steps)
     expected = np.stack([STRAIGHT[1.0], STRAIGHT[1.0], ARC, ARC, STILL, STILL])
     np.testing.assert_allclose(log.controls, expected, rtol=0, atol=1e-12)
-    assert mm.mrclam_steps(run, max_obs=3, step_dt=1.0).num_truncated == 0
+    assert mc.mrclam_steps(run, max_obs=3, step_dt=1.0).num_truncated == 0
 
 
 def test_round_trip_through_the_npz_format(root, tmp_path):
@@ -290,14 +290,14 @@ def test_real_dataset_robot_1():
     from jaxslam.metrics import ate_rmse
 
     run = mm.read_mrclam(DATA_DIR, 1)
-    steps = mm.mrclam_steps(run)
-    log = mm.mrclam_log(run, steps)
+    steps = mc.mrclam_steps(run)
+    log = mc.mrclam_log(run, steps)
     counts = log.obs_valid.sum(1)
     assert run.odometry_time.shape == (75000,) and run.odometry_time[-1] == pytest.approx(1499.98)
     assert steps.num_robot_sightings == 952 and steps.num_truncated == 0
     assert counts.sum() == 4771 and (counts > 0).sum() == 3349  # distinct landmark times
     assert 3000 < log.num_steps < 5000
-    assert np.diff(np.concatenate([[0.0], log.time])).max() <= mm.DEFAULT_MAX_GAP + 1e-9
+    assert np.diff(np.concatenate([[0.0], log.time])).max() <= mc.DEFAULT_MAX_GAP + 1e-9
     assert log.truth_landmarks.shape == (15, 2)
     ranges = log.obs_z[..., 0][log.obs_valid]
     bearings = log.obs_z[..., 1][log.obs_valid]

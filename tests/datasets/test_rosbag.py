@@ -24,8 +24,11 @@ from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
 from jaxslam import cli  # noqa: E402
 from jaxslam.datasets import LogFormatError, RobotLog, load_log, odometry_between  # noqa: E402
-from jaxslam.datasets import rosbag  # noqa: E402
-from jaxslam.datasets.rosbag import RosbagError, load_rosbag  # noqa: E402
+from jaxslam.datasets import rosbag_clouds, rosbag_reader  # noqa: E402
+from jaxslam.host import in_float64  # noqa: E402
+from jaxslam.datasets.rosbag import load_rosbag  # noqa: E402
+from jaxslam.datasets.rosbag_reader import RosbagError  # noqa: E402
+from jaxslam.geometry import compose  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: detect3d_reference
 T0_NS = 1_700_000_000 * 10**9  # an epoch stamp, as a real robot's clock gives
@@ -47,7 +50,7 @@ def world_pose(t):
     radius = SPEED / YAW_RATE
     local = np.stack([radius * np.sin(YAW_RATE * t), radius * (1 - np.cos(YAW_RATE * t)),
                       YAW_RATE * t], -1)
-    return rosbag.compose_poses(START, local)
+    return in_float64(compose, START, local)
 
 
 def relative(origin, poses):
@@ -240,7 +243,7 @@ def bag_path(tmp_path, kind, name="run"):
 
 def expected_controls(times_s, offset=np.zeros(3)):
     """(T, 3) true odometry moves of the sensor at ``offset`` on the base; row 0 zero."""
-    poses = rosbag.compose_poses(world_pose(times_s - T0_NS / 1e9), offset)
+    poses = in_float64(compose, world_pose(times_s - T0_NS / 1e9), offset)
     moves = np.zeros((len(poses), 3))
     moves[1:] = odometry_between(poses[:-1], poses[1:])
     return moves, poses
@@ -365,11 +368,11 @@ def test_cloud_points_round_trip(tmp_path, big_endian, float64, rows, row_paddin
     with AnyReader([path]) as reader:
         (connection, _, raw), = reader.messages()
         read = reader.deserialize(raw, connection.msgtype)
-    np.testing.assert_array_equal(rosbag.cloud_points(read), points[[0, 1, 3]])
+    np.testing.assert_array_equal(rosbag_clouds.cloud_points(read), points[[0, 1, 3]])
     bad = msgs.cloud(T0_NS, points)
     bad.fields[2].datatype = 2  # z as UINT8
     with pytest.raises(ValueError, match="field 'z' has datatype UINT8"):
-        rosbag.cloud_points(bad)
+        rosbag_clouds.cloud_points(bad)
 
 
 def cloud_topics(num_scans=5):
@@ -502,8 +505,8 @@ def test_cloud_bag_cylinder_detection_of_leaning_trunks(tmp_path, capsys):
 
 def test_flatten_cloud_keeps_the_nearest_point_per_bin_in_the_band():
     points = np.array([[2.0, 0.0, 0.0], [3.0, 0.0, 0.1], [1.0, 0.0, 0.9], [0.0, -4.0, 0.0]])
-    ranges = rosbag.flatten_cloud(points, num_beams=8, z_min=-0.5, z_max=0.5)
-    angles = rosbag.cloud_scan_angles(8)
+    ranges = rosbag_clouds.flatten_cloud(points, num_beams=8, z_min=-0.5, z_max=0.5)
+    angles = rosbag_clouds.cloud_scan_angles(8)
     assert ranges[np.argmin(np.abs(angles - np.pi / 8))] == 2.0  # bin [0, pi/4)
     assert ranges[np.argmin(np.abs(angles + 3 * np.pi / 8))] == 4.0  # bin [-pi/2, -pi/4)
     assert np.isinf(ranges).sum() == 6
@@ -624,11 +627,12 @@ def test_paths_that_are_not_bags(tmp_path):
     (tmp_path / "corrupt.bag").write_bytes(b"#ROSBAG V2.0\nnot really")
     with pytest.raises(RosbagError, match="cannot read as a ROS 1 bag"):
         load_rosbag(tmp_path / "corrupt.bag")
-    assert rosbag.is_rosbag_path(tmp_path / "x.bag") and rosbag.is_rosbag_path("x.mcap")
-    assert not rosbag.is_rosbag_path(tmp_path / "log.npz")
-    assert not rosbag.is_rosbag_path(tmp_path / "folder")  # no metadata.yaml: not a bag
+    assert rosbag_reader.is_rosbag_path(tmp_path / "x.bag")
+    assert rosbag_reader.is_rosbag_path("x.mcap")
+    assert not rosbag_reader.is_rosbag_path(tmp_path / "log.npz")
+    assert not rosbag_reader.is_rosbag_path(tmp_path / "folder")  # no metadata.yaml: not a bag
     (tmp_path / "folder" / "metadata.yaml").write_text("{}")
-    assert rosbag.is_rosbag_path(tmp_path / "folder")
+    assert rosbag_reader.is_rosbag_path(tmp_path / "folder")
     with pytest.raises(RosbagError, match="cannot read as a ROS 2 bag folder"):
         load_rosbag(tmp_path / "folder")
 

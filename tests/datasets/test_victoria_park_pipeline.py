@@ -496,23 +496,3 @@ def test_bad_settings_are_named():
         vps.parse_settings({"parms": {}}, "x")
     with pytest.raises(ValueError, match="no settings set"):
         vps.load_settings("tuned")
-
-
-def test_radius_noise_from_history_recovers_the_scatter():
-    """40 trees of radii 0.1-0.4 m, each seen 30 times with Gaussian scatter 0.03 m, plus 5 %
-    wrong associations (another tree's radius): the MAD-based std is within 10 % of 0.03
-    (its standard error at 1,200 samples is ~3 %; the outliers add ~5 %)."""
-    rng = np.random.default_rng(1)
-    trees = rng.uniform(0.1, 0.4, 40)
-    ids = np.repeat(np.arange(40), 30)
-    radius = trees[ids] + rng.normal(0.0, 0.03, ids.size)
-    wrong = rng.random(ids.size) < 0.05
-    radius[wrong] = rng.uniform(0.1, 0.4, wrong.sum())
-    seen_once = np.array([99])  # a landmark seen once is left out
-    ids = np.concatenate([ids, seen_once])[None]
-    radius = np.concatenate([radius, [5.0]])[None]
-    std, used = vps.radius_noise_from_history(ids, radius, np.ones(ids.shape, bool))
-    assert used == 1200
-    assert abs(std - 0.03) < 0.003, std
-    assert np.isnan(vps.radius_noise_from_history(-np.ones((2, 3), int), np.ones((2, 3)),
-                                                  np.ones((2, 3), bool))[0])

@@ -1,22 +1,17 @@
-"""Host-side checks of ``Params`` and controls at the public entry points.
+"""``check_params``: host-side rules for every ``Params`` field, before any tracing.
 
 The jitted filter cannot raise: a NaN gate or a negative noise coefficient there only turns
-into NaN poses and maps many steps later. ``check_params`` and ``check_controls`` run on the
-host, before any tracing (``run_filter`` and ``default_params`` call them), and raise a
-``ValueError`` that names the field, the bad value and what is expected. Leaves that are JAX
-tracers (inside ``jit`` / ``vmap``) have no value to check and are skipped silently.
-
-``cast_floating`` casts every floating leaf of a pytree to one dtype: ``run_filter`` uses it so
-float32 and float64 inputs mixed across params, controls and observations meet in the
-controls' dtype instead of failing deep inside ``lax.scan``.
+into NaN poses and maps many steps later. ``check_params`` runs on the host (``run_filter`` and
+``default_params`` call it) and raises a ``ValueError`` that names the field, the bad value and
+what is expected. Leaves that are JAX tracers (inside ``jit`` / ``vmap``) have no value to
+check and are skipped silently.
 """
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxslam.types import Params
+from jaxslam.validation.inputs import is_tracer
 
 # Trailing shape of every Params field (leading batch axes allowed for stacked sweeps).
 _VECTOR_SHAPES = {
@@ -95,11 +90,6 @@ def _ok(kind: str, x: np.ndarray) -> np.ndarray:
         if kind == "nonneg_or_inf":
             return ~np.isnan(x) & (x >= 0)
     raise AssertionError(kind)
-
-
-def is_tracer(x) -> bool:
-    """True for a JAX tracer (a value inside ``jit``/``vmap``/``grad`` with no concrete value)."""
-    return isinstance(x, jax.core.Tracer)
 
 
 def _show(x) -> str:
@@ -265,200 +255,3 @@ def _check_cross_fields(values: dict, where: str) -> None:
                 f"{where}.{noise} constant term {_show(constant[index])} and {where}.{floor}="
                 f"{_show(floors[index])}{at} give a zero std at distance 0; expected the "
                 f"constant term or {floor} > 0 (a zero std makes the covariance singular)")
-
-
-def check_controls(controls, num_steps: int | None = None, where: str = "controls") -> None:
-    """Raise ``ValueError`` unless ``controls`` is a finite (T, 3) float array.
-
-    A tracer is checked for shape and dtype only (its values are unknown). The message for a
-    non-finite value names the first bad row, its values and how many rows are bad.
-
-    Args:
-      controls: (T, 3) controls of the motion model (array-like).
-      num_steps: when given, T must equal it.
-      where: the name used in messages.
-    """
-    if not is_tracer(controls):
-        try:
-            controls = np.asarray(controls)
-        except Exception as error:  # noqa: BLE001
-            raise ValueError(f"{where} is not an array ({error}); expected shape (T, 3)") from error
-    shape, dtype = tuple(controls.shape), np.dtype(controls.dtype)
-    if len(shape) != 2 or shape[1] != 3:
-        raise ValueError(f"{where} must have shape (T, 3); got {shape}")
-    if num_steps is not None and shape[0] != num_steps:
-        raise ValueError(f"{where} must have shape (T, 3) with T = {num_steps}; got {shape}")
-    if dtype.kind != "f":
-        raise ValueError(f"{where} has dtype {dtype}; expected a float array (float32 or "
-                         "float64): its dtype sets the filter's dtype")
-    if is_tracer(controls):
-        return
-    bad_rows = ~np.isfinite(np.asarray(controls, np.float64)).all(axis=1)
-    if bad_rows.any():
-        row = int(np.argmax(bad_rows))
-        values = ", ".join(str(v) for v in np.asarray(controls[row]))  # in its own dtype
-        raise ValueError(f"{where} row {row} is [{values}] "
-                         f"({int(bad_rows.sum())} of {shape[0]} rows hold NaN or inf); "
-                         "expected finite controls in every row")
-
-
-def cast_floating(tree, dtype):
-    """``tree`` with every floating leaf cast to ``dtype`` (other leaves unchanged)."""
-    dtype = jnp.dtype(dtype)
-
-    def cast(leaf):
-        leaf = jnp.asarray(leaf)
-        return leaf.astype(dtype) if jnp.issubdtype(leaf.dtype, jnp.floating) else leaf
-
-    return jax.tree.map(cast, tree)
-
-
-__all__ = ["FIELD_SHAPES", "cast_floating", "check_controls", "check_params", "is_tracer"]
-
-
-# --- Units guard (issue 18) ------------------------------------------------------------------
-# Observations are (range [m], bearing [rad]). A log in other units loads fine and then every
-# row is masked or ignored inside the filter, so the run "succeeds" with an empty map. These
-# host-side checks look at the rows marked valid and say so in words, before the filter runs.
-#
-# Rules (all on the rows marked valid; none fire when there are no such rows):
-#   malformed: a row is malformed when a value is NaN/inf, the range is <= 0, or the bearing is
-#     outside [-pi, pi]. More than half malformed is a warning (with the counts per kind);
-#     every row malformed is a refusal in ``check_observation_units``.
-#   degrees: of the finite bearings, at least 10 % have |bearing| > pi and the 99th percentile
-#     of |bearing| lies in (2 pi, 360] -- beyond any radian convention ([-pi, pi] or [0, 2 pi])
-#     but within a degree circle. Certain (refusal) when, in addition, at least half of the
-#     finite bearings have |bearing| > pi.
-#   [0, 2 pi]: at least 10 % of the finite bearings exceed pi, none is negative and all are
-#     <= 2 pi: radians measured from 0 to 2 pi instead of -pi to pi.
-#   millimetres / centimetres: a forestry lidar sees trunks at about 5-80 m, so a median
-#     positive finite range above 100 m is a warning; the message names which of millimetres
-#     (median / 1000) or centimetres (median / 100) turn the median into a plausible 1-100 m.
-#     A median above 1000 m is certain (refusal). With ``max_range`` given (finite, > 0), a
-#     median above 10 * max_range is also a warning (most rows would be ignored as too far).
-_EXPECTED_UNITS = "expected ranges in metres and bearings in radians in [-pi, pi]"
-_DEGREE_SHARE = 0.10          # share of |bearing| > pi that starts the degree/[0, 2pi] rules
-_CERTAIN_SHARE = 0.50         # share of |bearing| > pi that makes degrees certain
-_MALFORMED_SHARE = 0.50       # share of malformed valid rows that is a warning
-_FAR_MEDIAN = 100.0           # [m] median range above which the units look wrong
-_CERTAIN_MEDIAN = 1000.0      # [m] median range above which the units are certainly wrong
-_PLAUSIBLE_MEDIAN = (1.0, 100.0)  # [m] a plausible median range after conversion
-_MAX_RANGE_FACTOR = 10.0      # median above this many max_range is a warning
-
-
-def _units_facts(z, valid) -> dict:
-    """Counts and statistics behind the units rules (see the comment above)."""
-    z = np.asarray(z, np.float64)
-    if z.ndim < 1 or z.shape[-1] != 2:
-        raise ValueError(f"observations z must have shape (..., 2); got {z.shape}")
-    valid = np.broadcast_to(np.asarray(valid, bool), z.shape[:-1])
-    rows = z[valid].reshape(-1, 2)
-    r, b = rows[:, 0], rows[:, 1]
-    nonfinite = ~np.isfinite(rows).all(-1)
-    with np.errstate(invalid="ignore"):
-        bad_range = ~nonfinite & (r <= 0)
-        bad_bearing = ~nonfinite & (np.abs(b) > np.pi)
-    facts = dict(n=len(rows), nonfinite=int(nonfinite.sum()), bad_range=int(bad_range.sum()),
-                 bad_bearing=int(bad_bearing.sum()),
-                 malformed=int((nonfinite | bad_range | bad_bearing).sum()))
-    fb = b[np.isfinite(b)]
-    facts["n_bearing"] = len(fb)
-    if len(fb):
-        beyond = np.abs(fb) > np.pi
-        facts.update(beyond=int(beyond.sum()), beyond_share=float(beyond.mean()),
-                     b_p99=float(np.quantile(np.abs(fb), 0.99)), b_min=float(fb.min()),
-                     b_max=float(fb.max()))
-        facts["degrees"] = (facts["beyond_share"] >= _DEGREE_SHARE
-                            and 2 * np.pi < facts["b_p99"] <= 360.0)
-        facts["two_pi"] = (facts["beyond_share"] >= _DEGREE_SHARE and facts["b_min"] >= 0
-                           and facts["b_max"] <= 2 * np.pi)
-    else:
-        facts.update(degrees=False, two_pi=False)
-    fr = r[np.isfinite(r) & (r > 0)]
-    facts["median_range"] = float(np.median(fr)) if len(fr) else None
-    facts["max_seen_range"] = float(fr.max()) if len(fr) else None
-    return facts
-
-
-def _range_units_guess(median: float) -> str:
-    low, high = _PLAUSIBLE_MEDIAN
-    names = [f"{unit} (median {median / scale:.3g} m)"
-             for unit, scale in (("millimetres", 1000.0), ("centimetres", 100.0))
-             if low <= median / scale <= high]
-    return " or ".join(names) if names else "a unit other than metres"
-
-
-def observation_units_warnings(z, valid, max_range=None) -> list[str]:
-    """Plain-word warnings that a log's observations are in the wrong units or malformed.
-
-    Host-side NumPy check of the rows marked ``valid`` (rules in the comment above this
-    function in ``jaxslam/validation.py``); each message names the numbers behind it and what
-    is expected. Returns ``[]`` for a good log, and for a log with no valid row.
-
-    Args:
-      z: (..., K, 2) observations (range, bearing).
-      valid: (..., K) bool mask of the rows that are observations.
-      max_range: optional usable range [m] of the filter; a median range far beyond it warns.
-    """
-    f = _units_facts(z, valid)
-    n = f["n"]
-    if n == 0:
-        return []
-    warnings = []
-    if f["degrees"]:
-        warnings.append(
-            f"bearings look like degrees: {f['beyond']} of {f['n_bearing']} "
-            f"({100 * f['beyond_share']:.0f}%) have |bearing| > pi and the largest reach "
-            f"{max(abs(f['b_min']), abs(f['b_max'])):.4g} (99th percentile "
-            f"{f['b_p99']:.4g}), within 360; {_EXPECTED_UNITS} (multiply degrees by pi/180)")
-    elif f["two_pi"]:
-        warnings.append(
-            f"bearings look like radians in [0, 2 pi]: {f['beyond']} of {f['n_bearing']} "
-            f"({100 * f['beyond_share']:.0f}%) are above pi, none is negative and the largest "
-            f"is {f['b_max']:.4g}; {_EXPECTED_UNITS} (subtract 2 pi from those above pi)")
-    median = f["median_range"]
-    if median is not None:
-        far = median > _FAR_MEDIAN
-        beyond_max = (max_range is not None and np.isfinite(float(max_range))
-                      and float(max_range) > 0
-                      and median > _MAX_RANGE_FACTOR * float(max_range))
-        if far or beyond_max:
-            reason = (f"a forestry lidar sees trunks at about 5-80 m; these look like "
-                      f"{_range_units_guess(median)}" if far else
-                      f"more than {_MAX_RANGE_FACTOR:.0f} times max_range "
-                      f"{float(max_range):.4g} m, so most would be ignored as too far")
-            warnings.append(
-                f"ranges look wrong: the median valid range is {median:.4g} m (largest "
-                f"{f['max_seen_range']:.4g} m), {reason}; {_EXPECTED_UNITS}")
-    if f["malformed"] > _MALFORMED_SHARE * n:
-        share = 100 * f["malformed"] / n
-        head = (f"all {n} observations marked valid are malformed" if f["malformed"] == n else
-                f"{f['malformed']} of {n} observations marked valid ({share:.0f}%) are "
-                "malformed")
-        warnings.append(
-            f"{head} ({f['nonfinite']} NaN or inf, {f['bad_range']} with a range <= 0, "
-            f"{f['bad_bearing']} with a bearing outside [-pi, pi]) and will be masked; "
-            f"{_EXPECTED_UNITS}")
-    return warnings
-
-
-def check_observation_units(z, valid) -> None:
-    """Raise ``ValueError`` when a log's observations are certainly unusable as given.
-
-    Refuses when every row marked valid is malformed (NaN/inf, range <= 0 or bearing outside
-    [-pi, pi]), when the bearings look like degrees with at least half beyond pi, or when the
-    median valid range is above 1000 m. The message is the matching
-    ``observation_units_warnings`` text. A log with no valid row passes (nothing to judge).
-    """
-    f = _units_facts(z, valid)
-    if f["n"] == 0:
-        return
-    certain = (f["malformed"] == f["n"]
-               or (f["degrees"] and f["beyond_share"] >= _CERTAIN_SHARE)
-               or (f["median_range"] is not None and f["median_range"] > _CERTAIN_MEDIAN))
-    if certain:
-        raise ValueError("; ".join(observation_units_warnings(z, valid))
-                         + " -- refusing to run on these observations")
-
-
-__all__ += ["check_observation_units", "observation_units_warnings"]

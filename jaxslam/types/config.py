@@ -1,0 +1,143 @@
+"""``FilterConfig``: the static filter settings (shapes and code paths) and their choices."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+MOTION_MODELS = ("odometry", "velocity", "ackermann")
+ASSOCIATIONS = ("stable", "greedy", "hungarian", "known")
+PROPOSALS = ("motion", "observation", "mixture")
+RESAMPLINGS = ("systematic", "stratified", "multinomial", "residual")
+BOUNDARIES = ("hard", "loose")
+MIXTURE_MODES = ("fixed", "adaptive")
+
+
+def _check_choice(name: str, value: str, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        raise ValueError(
+            f"FilterConfig.{name}={value!r} is not supported; expected one of {list(allowed)}"
+        )
+
+
+def _check_positive_int(name: str, value) -> None:
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
+        raise ValueError(
+            f"FilterConfig.{name}={value!r} is invalid; expected a positive integer (>= 1)"
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class FilterConfig:
+    """Static filter settings: everything that fixes array shapes or code paths.
+
+    Changing a field recompiles; sweeps over numbers belong in ``Params`` instead.
+
+    Attributes:
+      num_particles: P, particles per run.
+      max_landmarks: M, landmark slots per particle.
+      max_obs: K, padded observations per step.
+      motion_model: one of ``MOTION_MODELS``; fixes the meaning of the (3,) control vector.
+      association: one of ``ASSOCIATIONS``.
+      proposal: one of ``PROPOSALS``. The default is the observation proposal (FastSLAM 2.0,
+        Montemerlo et al. 2003) with the four flags below on and the default bursts in
+        ``Params``: on held-out logs with large turns or poor odometry it diverged far less
+        than the motion proposal, and about as often on smooth ones (docs/results.md,
+        proposal_defaults). The seed paper's FastSLAM is ``proposal="motion"``,
+        ``anchor_empty_map=False`` and ``motion_outlier_probability=0``.
+      mixture_mode: ``fixed`` ratio phi or ``adaptive`` (only used by the mixture proposal).
+      resampling: one of ``RESAMPLINGS``.
+      boundary: ``hard`` visibility limit or ``loose`` airlock (Geiser et al. 2023, section 3.1).
+      association_window: 0 (default) matches observations against every slot; N > 0 only
+        against each particle's N nearest active landmarks (by predicted range). Landmarks
+        outside the window are neither matched nor penalised, so choose N above the number of
+        trees the sensor can see at once. Cuts the (K, M) pair work to (K, N) for large maps.
+      max_match_rounds: bound on Gale-Shapley rounds; 0 means K * (M + 1), a bound that is
+        never reached (each round either forms a proposal or exhausts an observation's list),
+        so a matching is never cut short; the rounds actually used are in ``info``.
+      match_pose_uncertainty: with the observation or mixture proposal, observations are
+        matched at the motion prediction x_hat; True adds the pose uncertainty of that
+        prediction to the matching covariance, Z = Hx Sigma_u Hx^T + S (FastSLAM 2.0,
+        Montemerlo et al. 2003), so an accurate sensor still matches when x_hat is off by
+        the motion noise. False matches with S alone. Ignored by the motion proposal (each
+        particle matches at its own sampled pose).
+      anchor_empty_map: a particle whose map is still empty moves by the motion mean
+        instead of a draw: no later observation can tell its pose error from the frame of
+        the map it will build, so a draw only adds an error that rotates the whole map (the
+        floor of every run's final error). False samples as usual.
+      associate_at_sample: with the observation or mixture proposal, a particle drawn from
+        the observation proposal is matched again at its drawn pose before the update and
+        the weight (the match at x_hat only shapes the proposal). Particles drawn from the
+        motion model are always matched at their own pose. Costs a second association.
+      burst_proposal: with the observation or mixture proposal and bursts in the motion
+        noise (``Params.motion_outlier_probability`` > 0), draw from the two FastSLAM 2.0
+        Gaussians of the prior's core and burst pieces, mixed by prior mass x evidence
+        (``step_propose._burst_pieces``). False uses one Gaussian with the mixture's covariance.
+        Costs a second association and proposal per particle.
+      burst_turn_pieces: n >= 0. With ``burst_proposal``, n > 0 adds 2n + 1 pieces that split
+        the burst's first turn into Gaussians at offsets c_j = j (span/n) tau, j = -n..n
+        (tau = kappa sigma_rot1; ``proposal.turn_pieces``), each linearised and associated at
+        its own pose, so a turn far larger than the measured one is still proposed where the
+        observations put it. Costs 2n + 1 more associations and proposals per particle.
+      burst_turn_span: the pieces cover +-span tau (in burst standard deviations).
+    """
+
+    num_particles: int = 100
+    max_landmarks: int = 64
+    max_obs: int = 16
+    motion_model: str = "odometry"
+    association: str = "stable"
+    proposal: str = "observation"
+    mixture_mode: str = "fixed"
+    resampling: str = "systematic"
+    boundary: str = "loose"
+    max_match_rounds: int = 0
+    association_window: int = 0
+    match_pose_uncertainty: bool = True
+    anchor_empty_map: bool = True
+    associate_at_sample: bool = True
+    burst_proposal: bool = True
+    burst_turn_pieces: int = 0
+    burst_turn_span: float = 4.0
+
+    def __post_init__(self):
+        for name in ("num_particles", "max_landmarks", "max_obs"):
+            _check_positive_int(name, getattr(self, name))
+        if (not isinstance(self.max_match_rounds, (int, np.integer))
+                or self.max_match_rounds < 0):
+            raise ValueError(
+                f"FilterConfig.max_match_rounds={self.max_match_rounds!r} is invalid; "
+                "expected an integer >= 0 (0 means max_obs * (max_landmarks + 1))"
+            )
+        if (not isinstance(self.association_window, (int, np.integer))
+                or self.association_window < 0):
+            raise ValueError(
+                f"FilterConfig.association_window={self.association_window!r} is invalid; "
+                "expected an integer >= 0 (0 means every landmark slot)")
+        if (not isinstance(self.burst_turn_pieces, (int, np.integer))
+                or isinstance(self.burst_turn_pieces, bool) or self.burst_turn_pieces < 0):
+            raise ValueError(
+                f"FilterConfig.burst_turn_pieces={self.burst_turn_pieces!r} is invalid; "
+                "expected an integer >= 0 (0: no turn pieces)")
+        if (isinstance(self.burst_turn_span, bool)
+                or not isinstance(self.burst_turn_span, (int, float, np.floating))
+                or not self.burst_turn_span > 0 or not np.isfinite(self.burst_turn_span)):
+            raise ValueError(
+                f"FilterConfig.burst_turn_span={self.burst_turn_span!r} is invalid; "
+                "expected a finite number > 0 (burst standard deviations)")
+        for name in ("match_pose_uncertainty", "anchor_empty_map", "associate_at_sample",
+                     "burst_proposal"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"FilterConfig.{name}={getattr(self, name)!r} is invalid; "
+                                 "expected True or False")
+        _check_choice("motion_model", self.motion_model, MOTION_MODELS)
+        _check_choice("association", self.association, ASSOCIATIONS)
+        _check_choice("proposal", self.proposal, PROPOSALS)
+        _check_choice("mixture_mode", self.mixture_mode, MIXTURE_MODES)
+        _check_choice("resampling", self.resampling, RESAMPLINGS)
+        _check_choice("boundary", self.boundary, BOUNDARIES)
+
+    @property
+    def match_rounds(self) -> int:
+        """The bound actually used for the Gale-Shapley loop."""
+        return self.max_match_rounds or self.max_obs * (self.max_landmarks + 1)
