@@ -20,6 +20,9 @@ _PUBLIC = {
     "empty_observations": "jaxslam.types",
     "make_filter": "jaxslam.filter",
     "run_filter": "jaxslam.filter",
+    "scan_filter": "jaxslam.filter",
+    "Trace": "jaxslam.filter",
+    "Estimate": "jaxslam.filter",
     "estimate": "jaxslam.filter",
     "validate_observations": "jaxslam.filter",
     "Filter": "jaxslam.filter",
@@ -36,7 +39,10 @@ _PUBLIC = {
     "LogRun": "jaxslam.pipeline",
 }
 
-__all__ = sorted(_PUBLIC) + ["__version__"]
+# Submodules a user reaches as ``jaxslam.NAME`` without importing them first.
+_SUBMODULES = ("metrics",)
+
+__all__ = sorted(_PUBLIC) + list(_SUBMODULES) + ["__version__"]
 
 
 def __getattr__(name: str):
@@ -44,6 +50,8 @@ def __getattr__(name: str):
         value = getattr(importlib.import_module(_PUBLIC[name]), name)
         globals()[name] = value
         return value
+    if name in _SUBMODULES:
+        return importlib.import_module(f"jaxslam.{name}")
     raise AttributeError(f"module 'jaxslam' has no attribute {name!r}")
 
 

@@ -113,3 +113,19 @@ def test_dependencies_leave_mujoco_to_the_sim_extra():
     assert set(extras["sim"]) == {"mujoco==3.17.0", "mujoco-mjx==3.17.0"}
     test = extras["test"]
     assert "jaxslam[sim]" in test or set(extras["sim"]) <= set(test), test
+
+
+def test_top_level_api_resolves_and_is_lazy():
+    """Every name of ``jaxslam.__all__`` resolves; the module-level exports a user needs for a
+    single run (``scan_filter``, ``metrics``, the Params helpers) are among them; an unknown
+    name is an AttributeError, not a silent None."""
+    import jaxslam
+
+    for name in ("scan_filter", "run_filter", "default_params", "starting_params", "metrics",
+                 "calibrate_params", "filter_log"):
+        assert name in jaxslam.__all__, name
+    for name in jaxslam.__all__:
+        assert getattr(jaxslam, name) is not None, name
+    assert jaxslam.metrics.ate_rmse is not None
+    with pytest.raises(AttributeError, match="no attribute 'nonexistent'"):
+        jaxslam.nonexistent
