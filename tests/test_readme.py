@@ -29,3 +29,13 @@ def test_readme_names_the_two_commands():
     text = README.read_text()
     assert "jaxslam demo" in text
     assert "pytest" in text
+
+
+def test_readme_test_command_is_the_ci_command():
+    """The README's test command runs pytest exactly as ``.ci/run`` does (same options), so a
+    newcomer's run is the one CI judges."""
+    ci = (README.parent / ".ci" / "run").read_text()
+    ci_pytest = re.search(r"-m (pytest[^\n]*)", ci).group(1).strip()
+    readme_pytest = re.findall(r"python -m (pytest[^\n`]*)", README.read_text())
+    assert ci_pytest in [command.strip() for command in readme_pytest], (ci_pytest,
+                                                                        readme_pytest)
