@@ -47,13 +47,20 @@ class PredictedMeasurement(NamedTuple):
     noise_bb: jnp.ndarray
 
 
+def sensor_std(distance, params: Params):
+    """(sigma_range, sigma_bearing) of the sensor at ``distance`` (any shape), Geiser et al.
+    2023, Table 2: sigma = c_dist * distance + c_const, without the filter's floors (the noise
+    a simulator draws)."""
+    return (params.range_noise[0] * distance + params.range_noise[1],
+            params.bearing_noise[0] * distance + params.bearing_noise[1])
+
+
 def measurement_std(distance, params: Params):
-    """(sigma_range, sigma_bearing) at ``distance`` (any shape), Table 2 with floors."""
-    sigma_range = jnp.maximum(params.range_noise[0] * distance + params.range_noise[1],
-                              params.range_std_floor)
-    sigma_bearing = jnp.maximum(params.bearing_noise[0] * distance + params.bearing_noise[1],
-                                params.bearing_std_floor)
-    return sigma_range, sigma_bearing
+    """(sigma_range, sigma_bearing) at ``distance`` (any shape): ``sensor_std`` floored at
+    ``range_std_floor`` and ``bearing_std_floor`` (the noise the filter assumes)."""
+    sigma_range, sigma_bearing = sensor_std(distance, params)
+    return (jnp.maximum(sigma_range, params.range_std_floor),
+            jnp.maximum(sigma_bearing, params.bearing_std_floor))
 
 
 def sandwich(h00, h01, h10, h11, a, b, c):

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxslam.detect import detect_trunks
+from jaxslam.ekf import measurement_std, sensor_std
 from jaxslam.geometry import range_bearing, wrap_angle
 from jaxslam.types import Observations, Params, default_params
 from sims.forest import Forest, random_forest, world_from_forest
@@ -62,8 +63,8 @@ def analytic_observations(key, pose, centres, radii, params: Params, max_obs: in
     """Noisy range-bearing (K, 2) of the K nearest trunks in range of ``pose`` (3,).
 
     z = h(pose, c_n) + (sigma_r eps_1, sigma_b eps_2), sigma = coeff[0] * range + coeff[1]
-    (Geiser et al. 2023, Table 2); trunks beyond ``params.max_range`` or nearer than ``min_range`` are
-    not seen. With fewer than K in range the remaining rows are invalid.
+    (Geiser et al. 2023, Table 2: ``ekf.sensor_std``, floored with ``floor_noise``); trunks
+    beyond ``params.max_range`` or nearer than ``min_range`` are not seen. With fewer than K in range the remaining rows are invalid.
     """
     truth = range_bearing(pose[None, :], centres)  # (N, 2)
     visible = (truth[:, 0] <= params.max_range) & (truth[:, 0] > params.min_range)
@@ -71,11 +72,7 @@ def analytic_observations(key, pose, centres, radii, params: Params, max_obs: in
     neg, pick = jax.lax.top_k(-jnp.where(visible, truth[:, 0], jnp.inf), k)
     valid = jnp.isfinite(neg)
     dist = truth[pick, 0]
-    std_r = params.range_noise[0] * dist + params.range_noise[1]
-    std_b = params.bearing_noise[0] * dist + params.bearing_noise[1]
-    if floor_noise:
-        std_r = jnp.maximum(std_r, params.range_std_floor)
-        std_b = jnp.maximum(std_b, params.bearing_std_floor)
+    std_r, std_b = (measurement_std if floor_noise else sensor_std)(dist, params)
     eps = jax.random.normal(key, (k, 2), truth.dtype)
     z = jnp.stack([dist + std_r * eps[:, 0], wrap_angle(truth[pick, 1] + std_b * eps[:, 1])], -1)
     pad = max_obs - k

@@ -407,3 +407,27 @@ def test_radius_distance_sq_is_off_by_default():
                                  jnp.asarray([0.3, 0.2])[None, :], jnp.asarray([1, 5])[None, :],
                                  params)
     np.testing.assert_array_equal(np.asarray(got), 0.0)
+
+
+@pytest.mark.parametrize("use_jit", [False, True])
+def test_sensor_std_and_floored_measurement_std_against_numpy(use_jit):
+    """Table 2: sigma = c_dist d + c_const (the simulator's noise); the filter's std is that
+    floored. Float64 NumPy reference; exact up to float64 rounding (rtol 1e-12). The floors
+    bind at short range with these coefficients (d = 0: 0.002 < floor 0.01), not at 30 m."""
+    params = default_params(dtype=jnp.float64, range_noise=(0.01, 0.002),
+                            bearing_noise=(0.0002, 0.0005), range_std_floor=0.01,
+                            bearing_std_floor=0.001)
+    distance = np.array([0.0, 0.5, 5.0, 30.0])
+    want_range = 0.01 * distance + 0.002
+    want_bearing = 0.0002 * distance + 0.0005
+    sensor = jax.jit(ekf.sensor_std) if use_jit else ekf.sensor_std
+    floored = jax.jit(ekf.measurement_std) if use_jit else ekf.measurement_std
+    got = sensor(jnp.asarray(distance), params)
+    np.testing.assert_allclose(got[0], want_range, rtol=1e-12)
+    np.testing.assert_allclose(got[1], want_bearing, rtol=1e-12)
+    got = floored(jnp.asarray(distance), params)
+    np.testing.assert_allclose(got[0], np.maximum(want_range, 0.01), rtol=1e-12)
+    np.testing.assert_allclose(got[1], np.maximum(want_bearing, 0.001), rtol=1e-12)
+    assert float(got[0][0]) == 0.01 and float(got[0][-1]) > 0.01  # the floor binds, then not
+    batched = jax.vmap(ekf.sensor_std, in_axes=(0, None))(jnp.asarray(distance), params)
+    np.testing.assert_allclose(batched[0], want_range, rtol=1e-12)
