@@ -1,4 +1,4 @@
-"""Simulator benchmark: lidar scans per second and scenario build times.
+"""Simulator benchmark: lidar scans per second, scenario build times and per-run worlds.
 
 Run: ``.venv/bin/python benchmarks/sim_bench.py [--quick]``. Compile and run times are printed
 apart; run times are measured after ``block_until_ready`` on a second call.
@@ -10,6 +10,7 @@ import time
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 import sims
 
@@ -59,6 +60,36 @@ def bench_scenarios(num_runs: int, num_steps: int, lidar_runs: int, lidar_steps:
           f"{run * 1000 * 200 / scans:.0f} s")
 
 
+def bench_per_run_worlds(num_runs: int, eager_runs: int):
+    """Per-run worlds (80 trees in 60 m x 60 m, T=200, K=16): a forest and path drawn on the
+    host per run (``_draw_world``, as the shared world still is) against the worlds drawn in
+    one compiled, vmapped program (``run_world_arrays``) and the whole per-run simulator
+    (world + odometry + observations, ``scenario_batch``), in groups of 100 runs."""
+    from jaxslam import studies
+    from sims import batch
+
+    for path in ("loop", "random"):
+        config = studies.load_study_config(None, [
+            "scenario.world='per_run'", f"scenario.path='{path}'", "scenario.num_trees=80",
+            "scenario.size=60.0", "scenario.num_steps=200", "filter.max_obs=16",
+            "run_width=100"])
+        settings, seed = config.scenario, config.seed
+        jax.block_until_ready(batch._draw_world(settings, batch._run_world_key(seed, eager_runs)))
+        start = time.perf_counter()  # after a first draw: its compiles are not counted
+        for run in range(eager_runs):
+            jax.block_until_ready(batch._draw_world(settings, batch._run_world_key(seed, run)))
+        eager = (time.perf_counter() - start) / eager_runs
+        ids = np.arange(num_runs)
+        draw = lambda: batch.run_world_arrays(settings, seed, ids, width=100)  # noqa: E731
+        first, run, _ = timed(draw)
+        simulate = lambda: batch.scenario_batch(config, ids)  # noqa: E731
+        sim_first, sim_run, _ = timed(simulate)
+        print(f"per-run worlds, {path} path: host draw {1e3 * eager:7.1f} ms/run | in-program "
+              f"draw {num_runs} runs: compile+first {first:.2f} s, run {run:.3f} s "
+              f"({1e3 * run / num_runs:.2f} ms/run) | whole simulator: compile+first "
+              f"{sim_first:.2f} s, run {sim_run:.3f} s ({1e3 * sim_run / num_runs:.2f} ms/run)")
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--quick", action="store_true", help="smaller sizes")
@@ -67,8 +98,10 @@ def main():
     bench_scans(64 if args.quick else 256)
     if args.quick:
         bench_scenarios(100, 200, 1, 20)
+        bench_per_run_worlds(200, 3)
     else:
         bench_scenarios(1000, 200, 4, 50)
+        bench_per_run_worlds(1000, 10)
 
 
 if __name__ == "__main__":

@@ -11,15 +11,15 @@ scan or the wheeled robot is built (``sims.mujoco_loader``): analytic scenarios 
 
 Importing ``sims`` registers it as the study simulator "sims" (``jaxslam.simulators``): its
 [scenario] settings are ``sims.config.ScenarioConfig``, its runs ``sims.batch.scenario_batch``
-(imported at the first simulation). A study config naming ``simulator = "sims"`` (the default)
-loads this package by that name.
+(imported at the first simulation; the MJX wheeled robot's runs are ``sims.robot_runs``). A
+study config naming ``simulator = "sims"`` (the default) loads this package by that name.
 """
 from __future__ import annotations
 
 import importlib
 
 from jaxslam.simulators import register_simulator
-from sims.config import scenario_config
+from sims.config import scenario_config, scenario_to_dict
 from sims.mujoco_loader import lazy_functions
 
 _PUBLIC = {
@@ -32,6 +32,8 @@ _PUBLIC = {
     "plantation_forest": "sims.forest",
     "random_clutter": "sims.forest",
     "random_forest": "sims.forest",
+    "sample_forest": "sims.forest",
+    "poisson_disc": "sims.forest",
     "sample_radii": "sims.forest",
     "world_from_forest": "sims.forest",
     "BLACK_CHERRY_DBH": "sims.forest3d",
@@ -70,12 +72,13 @@ _PUBLIC = {
     "build_scenario": "sims.scenario",
     "default_scenario": "sims.scenario",
 }
-_SUBMODULES = ("batch", "config", "forest", "lidar", "mujoco_loader", "paths", "robot", "scenario")
+_SUBMODULES = ("batch", "config", "forest", "lidar", "mujoco_loader", "paths", "robot",
+               "robot_runs", "scenario")
 
 __all__ = sorted(_PUBLIC)
 
 register_simulator("sims", simulate=lazy_functions("sims.batch", "scenario_batch")[0],
-                   settings=scenario_config)
+                   settings=scenario_config, to_dict=scenario_to_dict)
 
 
 def __getattr__(name: str):

@@ -7,6 +7,10 @@ from ``fold_in(key, 0)`` (the filter uses ``fold_in(key, 1)``) and, with
 ``scenario.world = "per_run"``, its own forest and path from ``fold_in(key, 2)``. With
 ``world = "shared"`` every run follows one true path through one forest (drawn from the seed
 alone), so runs differ only in noise: paired comparisons, but one world's luck.
+
+A per-run world is drawn inside the compiled, vmapped simulator (``draw_run_world``, static
+shapes); a run whose forest cannot hold its trees is refused afterwards, on the host, with a
+ValueError naming the runs and how many of those simulated were affected.
 """
 from __future__ import annotations
 
@@ -25,6 +29,10 @@ from sims.mujoco_loader import require_mujoco
 # 1440 beams (0.25 degree): at 720, trunks beyond ~10 m get fewer than 4 points.
 LIDAR_BEAMS = 1440
 LIDAR_BEAM_NOISE = (0.0, 0.01)  # per-beam range std (per metre, constant) [m]
+# Runs per compiled world-drawing call (``run_world_arrays``): one compile whatever R.
+WORLD_WIDTH = 16
+# A study of at most this many runs counts all its unbuildable worlds when one chunk has one.
+STUDY_CHECK_RUNS = 20_000
 
 
 def simulation_params(scenario: ScenarioConfig) -> Params:
@@ -44,39 +52,83 @@ def study_world(scenario: ScenarioConfig, seed: int):
 
 def run_world(scenario: ScenarioConfig, seed: int, run_id: int):
     """The forest and true path of run ``run_id`` of a per-run-world study: (forest, path),
-    drawn from ``fold_in(fold_in(PRNGKey(seed), run_id), 2)``."""
-    run_key = jax.random.fold_in(jax.random.PRNGKey(seed), run_id)
-    return _draw_world(scenario, jax.random.fold_in(run_key, 2))
+    drawn from ``fold_in(fold_in(PRNGKey(seed), run_id), 2)`` as the study's simulator draws
+    it (``draw_run_world``); ValueError when its forest cannot be placed."""
+    from sims.forest import Forest, empty_clutter
+
+    path, centres, radii = (part[0] for part in run_world_arrays(scenario, seed, [run_id]))
+    return Forest(centres, radii, empty_clutter()), path
 
 
 def _draw_world(scenario: ScenarioConfig, key):
-    """A forest (random or plantation) and a true path (loop, lawnmower or random) (T+1, 3)."""
+    """A forest (random or plantation) and a true path (loop, lawnmower or random) (T+1, 3),
+    drawn eagerly (a forest that cannot be placed raises ValueError)."""
     from sims import forest as forest_lib
     from sims import paths
 
     key_forest, key_path = jax.random.split(key)
     size = scenario.size
-    centre = (0.5 * size, 0.5 * size)
-    path = None
-    if scenario.path == "loop":
-        radius = scenario.num_steps * scenario.step_length / (2.0 * np.pi)
-        path = paths.loop_path(scenario.num_steps, centre, (radius, radius),
-                               scenario.step_length)
-    elif scenario.path == "lawnmower":  # lanes midway between plantation rows
-        path = paths.lawnmower_path(np.arange(3.5, size - 3.0, 7.0), 0.0, size,
-                                    scenario.num_steps, scenario.step_length)
+    path = _designed_path(scenario)
     if scenario.forest == "plantation":
-        forest = forest_lib.plantation_forest(key_forest, num_rows=max(2, int(size // 7.0) + 1),
-                                              trees_per_row=max(2, int(size // 3.0) + 1))
+        forest = forest_lib.plantation_forest(key_forest, *_plantation_shape(size))
     else:
         keep_clear = None if path is None else np.asarray(path)[:, :2]
         forest = forest_lib.random_forest(key_forest, scenario.num_trees, (size, size),
                                           keep_clear=keep_clear)
     if path is None:
         path = paths.random_smooth_path(key_path, forest.centres, scenario.num_steps,
-                                        (centre[0], centre[1], 0.0), scenario.step_length,
+                                        (0.5 * size, 0.5 * size, 0.0), scenario.step_length,
                                         bounds=((0.0, 0.0), (size, size)))
     return forest, path
+
+
+def _designed_path(scenario: ScenarioConfig):
+    """The loop or lawnmower path (T+1, 3) of a scenario (no key: every world has it), or None
+    for a random path (drawn through each forest)."""
+    from sims import paths
+
+    size = scenario.size
+    if scenario.path == "loop":
+        radius = scenario.num_steps * scenario.step_length / (2.0 * np.pi)
+        return paths.loop_path(scenario.num_steps, (0.5 * size, 0.5 * size), (radius, radius),
+                               scenario.step_length)
+    if scenario.path == "lawnmower":  # lanes midway between plantation rows
+        return paths.lawnmower_path(np.arange(3.5, size - 3.0, 7.0), 0.0, size,
+                                    scenario.num_steps, scenario.step_length)
+    return None
+
+
+def _plantation_shape(size: float) -> tuple[int, int]:
+    """(rows 7 m apart, trees 3 m apart along a row) of a plantation filling the square."""
+    return max(2, int(size // 7.0) + 1), max(2, int(size // 3.0) + 1)
+
+
+def draw_run_world(settings: ScenarioConfig, key, designed_path=None):
+    """One run's world as a pure function of its ``key`` (``jit``, ``vmap``): the world
+    ``_draw_world`` draws, without raising.
+
+    ``designed_path``: ``_designed_path(settings)`` (computed once by the caller).
+    Returns (path (T+1, 3), centres (N, 2), radii (N,) float32, placed () int32 trees placed; a
+    random forest with placed < N has zero rows and is refused by ``_check_placed``).
+    """
+    from sims import forest as forest_lib
+    from sims import paths
+
+    key_forest, key_path = jax.random.split(key)
+    size = settings.size
+    if settings.forest == "plantation":
+        forest = forest_lib.plantation_forest(key_forest, *_plantation_shape(size))
+        placed = jnp.asarray(forest.centres.shape[0], jnp.int32)
+    else:
+        keep_clear = None if designed_path is None else designed_path[:, :2]
+        forest, placed = forest_lib.sample_forest(key_forest, settings.num_trees, (size, size),
+                                                  keep_clear=keep_clear)
+    path = designed_path
+    if path is None:
+        path = paths.random_smooth_path(key_path, forest.centres, settings.num_steps,
+                                        (0.5 * size, 0.5 * size, 0.0), settings.step_length,
+                                        bounds=((0.0, 0.0), (size, size)))
+    return _world_arrays(forest, path) + (placed,)
 
 
 def _world_arrays(forest, path):
@@ -95,8 +147,12 @@ def scenario_batch(config: StudyConfig, run_ids: np.ndarray, width: int | None =
     controls, observations and tree_seen; truth_pose (T+1, 3), tree_centres (N, 2) and
     tree_radii (N,) are the shared world's, or (R, ...) with ``scenario.world = "per_run"``.
 
-    Lidar scans need MuJoCo: without it, ``SimulatorNotInstalled`` (an ImportError naming the
-    install command) is raised before anything is simulated.
+    With ``scenario.robot = "mjx_wheeled"`` the MJX wheeled robot drives each run
+    (``sims.robot_runs.robot_batch``): truth_pose is then (R, T+1, 3) and the world leaves
+    (R, ...) in both kinds of world.
+
+    Lidar scans and the MJX robot need MuJoCo: without it, ``SimulatorNotInstalled`` (an
+    ImportError naming the install command) is raised before anything is simulated.
     """
     run_ids = np.asarray(run_ids, np.int64).reshape(-1)
     if run_ids.size == 0:
@@ -104,6 +160,10 @@ def scenario_batch(config: StudyConfig, run_ids: np.ndarray, width: int | None =
     if config.scenario.observation_source == "lidar":
         require_mujoco('scenario.observation_source = "lidar" (MJX lidar scans)')
     width = config.run_width if width is None else int(width)
+    if config.scenario.robot == "mjx_wheeled":
+        from sims.robot_runs import robot_batch
+
+        return robot_batch(config, run_ids, width)
     if config.scenario.world == "per_run":
         return _per_run_batch(config, run_ids, width)
     simulate, world = _simulator(config.scenario, config.seed, config.filter.max_obs)
@@ -126,7 +186,7 @@ def _simulator(settings: ScenarioConfig, seed: int, max_obs: int):
     """
     from sims import scenario as scenario_lib
     from sims.forest import world_from_forest
-    from sims.paths import noisy_odometry, true_moves
+    from sims.paths import true_moves
 
     forest, path = study_world(settings, seed)
     params = simulation_params(settings)
@@ -148,7 +208,8 @@ def _simulator(settings: ScenarioConfig, seed: int, max_obs: int):
             path[1:])
         angles = jnp.asarray(beam_angles(LIDAR_BEAMS), jnp.float32)
 
-    def observe(key, pose, step):
+    def observe(key, pose_and_step):
+        pose, step = pose_and_step
         if settings.observation_source == "analytic":
             return scenario_lib.analytic_observations(key, pose, centres, radii, params, max_obs)
         key_noise, key_detect = jax.random.split(key)
@@ -160,18 +221,13 @@ def _simulator(settings: ScenarioConfig, seed: int, max_obs: int):
 
     def one_run(run_id):
         run_key = jax.random.fold_in(jax.random.PRNGKey(seed), run_id)
-        key_odometry, key_obs = jax.random.split(jax.random.fold_in(run_key, 0))
-        controls = noisy_odometry(key_odometry, moves, params)
-        steps = jnp.arange(moves.shape[0])
-        inputs = (jax.random.split(key_obs, moves.shape[0]), path[1:], steps)
-        if settings.observation_source == "analytic":
-            observations = jax.vmap(observe)(*inputs)
-        else:
-            # Scan detection holds (segments x beams) work arrays (B x B for the geometric and
-            # RANSAC fits): a vmap over all T steps of a 100-run chunk asked for 63 GB. Steps
-            # go in sequence, runs stay vmapped.
-            observations = jax.lax.map(lambda args: observe(*args), inputs)
-        seen = (_observed_trees(observations, centres.shape[0])
+        # Scan detection holds (segments x beams) work arrays (B x B for the geometric and
+        # RANSAC fits): a vmap over all T steps of a 100-run chunk asked for 63 GB. Lidar
+        # steps go in sequence, runs stay vmapped.
+        controls, observations = scenario_lib.simulate_run(
+            jax.random.fold_in(run_key, 0), moves, (path[1:], jnp.arange(moves.shape[0])),
+            params, observe, sequential=settings.observation_source == "lidar")
+        seen = (observed_trees(observations, centres.shape[0])
                 if settings.observation_source == "analytic" else in_range)
         return controls, observations, seen
 
@@ -179,49 +235,118 @@ def _simulator(settings: ScenarioConfig, seed: int, max_obs: int):
     return jax.jit(jax.vmap(one_run)), world
 
 
-def _observed_trees(observations, num_trees: int):
+def observed_trees(observations, num_trees: int):
     """(N,) bool: trees observed at least once (analytic observations carry tree ids)."""
     ids = jnp.where(observations.valid, observations.landmark_id, num_trees)
     return jnp.zeros(num_trees, bool).at[ids.ravel()].set(True, mode="drop")
 
 
+def _run_world_key(seed: int, run_id):
+    """``fold_in(fold_in(PRNGKey(seed), run_id), 2)``: the key of run ``run_id``'s world."""
+    return jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), run_id), 2)
+
+
 @functools.lru_cache(maxsize=8)
 def _per_run_simulator(settings: ScenarioConfig, seed: int, max_obs: int):
-    """jit(vmap(one run)) for per-run worlds: (run_ids (R,), path (R, T+1, 3), centres (R, N, 2),
-    radii (R, N)) -> (controls (R, T, 3), observations, tree_seen (R, N)). Analytic observations
-    (a lidar needs an MJX model of each run's forest, not built per run)."""
+    """jit(vmap(one run)) for per-run worlds: run_ids (R,) -> (controls (R, T, 3),
+    observations, tree_seen (R, N), path (R, T+1, 3), centres (R, N, 2), radii (R, N),
+    placed (R,)). Each run draws its world in the program (``draw_run_world``). Analytic
+    observations (a lidar needs an MJX model of each run's forest, not built per run)."""
     from sims import scenario as scenario_lib
-    from sims.paths import noisy_odometry, true_moves
+    from sims.paths import true_moves
 
     params = simulation_params(settings)
+    designed_path = _designed_path(settings)
 
-    def one_run(run_id, path, centres, radii):
+    def one_run(run_id):
+        path, centres, radii, placed = draw_run_world(
+            settings, _run_world_key(seed, run_id), designed_path)
         moves = true_moves(path, params.min_translation)
         run_key = jax.random.fold_in(jax.random.PRNGKey(seed), run_id)
-        key_odometry, key_obs = jax.random.split(jax.random.fold_in(run_key, 0))
-        controls = noisy_odometry(key_odometry, moves, params)
-        observations = jax.vmap(lambda key, pose: scenario_lib.analytic_observations(
-            key, pose, centres, radii, params, max_obs))(
-                jax.random.split(key_obs, moves.shape[0]), path[1:])
-        return controls, observations, _observed_trees(observations, centres.shape[0])
+        controls, observations = scenario_lib.simulate_run(
+            jax.random.fold_in(run_key, 0), moves, path[1:], params,
+            lambda key, pose: scenario_lib.analytic_observations(key, pose, centres, radii,
+                                                                 params, max_obs))
+        seen = observed_trees(observations, centres.shape[0])
+        return controls, observations, seen, path, centres, radii, placed
 
     return jax.jit(jax.vmap(one_run))
 
 
+@functools.lru_cache(maxsize=8)
+def _world_drawer(settings: ScenarioConfig, seed: int):
+    """jit(vmap(run world)): run_ids (R,) -> (path, centres, radii, placed), leaves (R, ...)."""
+    designed_path = _designed_path(settings)
+    return jax.jit(jax.vmap(lambda run_id: draw_run_world(
+        settings, _run_world_key(seed, run_id), designed_path)))
+
+
 def _per_run_batch(config: StudyConfig, run_ids: np.ndarray, width: int) -> RunBatch:
-    """``scenario_batch`` for ``world = "per_run"``: run i's forest and path from its own key
-    (``run_world``, drawn on the host), simulated in groups of ``width`` runs."""
+    """``scenario_batch`` for ``world = "per_run"``: run i's forest and path drawn from its
+    own key inside the compiled simulator, in groups of ``width`` runs."""
     settings = config.scenario
     simulate = _per_run_simulator(settings, config.seed, config.filter.max_obs)
-    worlds = [_world_arrays(*run_world(settings, config.seed, int(i))) for i in run_ids]
-    path, centres, radii = (jnp.stack(parts) for parts in zip(*worlds))
+    *outputs, placed = simulate_in_groups(simulate, run_ids, width)
+    if _short_runs(settings, placed).size and config.num_runs <= STUDY_CHECK_RUNS:
+        # Count the whole study's runs (worlds only), so the error says how many it loses.
+        study_ids = np.arange(config.num_runs)
+        study_placed = simulate_in_groups(_world_drawer(settings, config.seed), study_ids,
+                                          WORLD_WIDTH)[3]
+        _check_placed(settings, study_ids, study_placed, "runs of the study")
+    _check_placed(settings, run_ids, placed)
+    controls, observations, seen, path, centres, radii = outputs
+    return RunBatch(controls, observations, path, centres, radii, seen)
+
+
+def run_world_arrays(settings: ScenarioConfig, seed: int, run_ids, width: int = WORLD_WIDTH):
+    """The worlds of runs ``run_ids`` (R,): (path (R, T+1, 3), centres (R, N, 2), radii (R, N))
+    float32, each run's own (``draw_run_world``, in compiled groups of ``width`` runs) or the
+    shared one repeated (``study_world``). ValueError names the runs whose forest cannot be
+    placed."""
+    run_ids = np.asarray(run_ids, np.int64).reshape(-1)
+    if settings.world == "per_run":
+        *world, placed = simulate_in_groups(_world_drawer(settings, seed), run_ids, width)
+        _check_placed(settings, run_ids, placed)
+        return tuple(world)
+    return tuple(jnp.broadcast_to(part, (run_ids.size,) + part.shape)
+                 for part in _world_arrays(*study_world(settings, seed)))
+
+
+def _short_runs(settings: ScenarioConfig, placed) -> np.ndarray:
+    """Indices of the runs whose forest holds fewer trees than ``settings.num_trees``."""
+    if settings.forest != "random":  # a plantation places every tree
+        return np.zeros(0, int)
+    return np.flatnonzero(np.asarray(placed) < settings.num_trees)
+
+
+def _check_placed(settings: ScenarioConfig, run_ids: np.ndarray, placed,
+                  scope: str = "runs simulated") -> None:
+    """Raise ValueError naming the runs ``run_ids`` (R,) whose forest is short of trees."""
+    placed, short = np.asarray(placed), _short_runs(settings, placed)
+    if short.size == 0:
+        return
+    listed = ", ".join(f"{run_ids[i]} ({placed[i]} placed)" for i in short[:5])
+    clear = "" if settings.path == "random" else f" and 1.5 m off the {settings.path} path"
+    raise ValueError(
+        f"scenario.world='per_run': {short.size} of the {run_ids.size} {scope} "
+        f"(run ids {run_ids.min()}..{run_ids.max()}) could not place scenario.num_trees="
+        f"{settings.num_trees} trees 2.0 m apart{clear} in a scenario.size={settings.size} m "
+        f"square: runs {listed}{', ...' if short.size > 5 else ''}; use a larger "
+        "scenario.size or fewer scenario.num_trees (the 2.0 m spacing and 1.5 m path "
+        "clearance are the defaults of sims.forest.sample_forest)")
+
+
+def simulate_in_groups(simulate, run_ids: np.ndarray, width: int, *per_run):
+    """``simulate(run_ids (W,), *leaves (W, ...))`` over groups of ``width`` runs, the last
+    padded by repeating its last run (padding dropped), outputs concatenated to (R, ...).
+
+    One compiled width whatever the number of runs asked: a run's inputs and outputs never
+    depend on how many runs are simulated together."""
     padded = -(-run_ids.size // width) * width
     rows = np.minimum(np.arange(padded), run_ids.size - 1)
     groups = []
     for first in range(0, padded, width):
         group = rows[first:first + width]
-        groups.append(simulate(jnp.asarray(run_ids[group], jnp.uint32), path[group],
-                               centres[group], radii[group]))
-    controls, observations, seen = jax.tree.map(
-        lambda *parts: jnp.concatenate(parts)[:run_ids.size], *groups)
-    return RunBatch(controls, observations, path, centres, radii, seen)
+        groups.append(simulate(jnp.asarray(run_ids[group], jnp.uint32),
+                               *(leaves[group] for leaves in per_run)))
+    return jax.tree.map(lambda *parts: jnp.concatenate(parts)[:run_ids.size], *groups)

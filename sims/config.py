@@ -26,11 +26,12 @@ SCENARIO_RULES = {
     "detection": Rule("str"),
     "odometry_noise_scale": Rule("float", 0.0, True),
     "world": Rule("str"),
+    "robot": Rule("str"),
 }
 SCENARIO_CHOICES = {"forest": ("random", "plantation"), "path": ("loop", "lawnmower", "random"),
                     "observation_source": ("analytic", "lidar"),
                     "detection": ("centroid", "kasa", "geometric", "ransac"),
-                    "world": ("shared", "per_run")}
+                    "world": ("shared", "per_run"), "robot": ("kinematic", "mjx_wheeled")}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,6 +47,11 @@ class ScenarioConfig:
     runs differ in noise only, for paired comparisons) or "per_run" (run i draws its own
     forest and path from its run key: the spread over worlds is part of every metric;
     analytic observations only).
+    robot: "kinematic" (the robot follows the path exactly; odometry = the true moves with
+    Eq. (1) noise) or "mjx_wheeled" (the MJX differential-drive robot of ``sims.robot``,
+    started at the path's first pose, driven by random wheel-speed commands with wheel slip,
+    friction and acceleration limits; its encoder odometry is the controls and its chassis
+    path the truth: ``sims.robot_runs``; analytic observations, odometry_noise_scale 1).
     """
 
     forest: str = "random"
@@ -59,6 +65,7 @@ class ScenarioConfig:
     detection: str = "kasa"
     odometry_noise_scale: float = 1.0
     world: str = "shared"
+    robot: str = "kinematic"
 
     def __post_init__(self):
         check_fields(SECTION, self, SCENARIO_RULES)
@@ -67,6 +74,14 @@ class ScenarioConfig:
             raise ValueError("scenario.world='per_run' needs scenario.observation_source="
                              "'analytic' (lidar scans are cast in one MJX model of a shared "
                              "forest); use world='shared' for lidar studies")
+        if self.robot == "mjx_wheeled" and self.observation_source != "analytic":
+            raise ValueError("scenario.robot='mjx_wheeled' needs scenario.observation_source="
+                             "'analytic' (lidar scans along each robot's own path are not "
+                             "simulated); use robot='kinematic' for lidar studies")
+        if self.robot == "mjx_wheeled" and self.odometry_noise_scale != 1.0:
+            raise ValueError(f"scenario.odometry_noise_scale={self.odometry_noise_scale!r} "
+                             "has no effect with scenario.robot='mjx_wheeled' (its odometry "
+                             "errors come from wheel slip, not Eq. (1) noise); leave it at 1.0")
 
 
 def scenario_config(section) -> ScenarioConfig:
@@ -85,3 +100,13 @@ def scenario_config(section) -> ScenarioConfig:
     check_keys(SECTION, section, ScenarioConfig)
     check_choices(SECTION, section, SCENARIO_CHOICES)
     return ScenarioConfig(**normalise(SECTION, section, SCENARIO_RULES))
+
+
+def scenario_to_dict(settings: ScenarioConfig) -> dict:
+    """The [scenario] section written back (``Simulator.to_dict``): every key, except
+    ``robot`` at its default "kinematic", so that the study.toml, digest and resume check of
+    a kinematic study stay what they were before the key existed."""
+    out = dataclasses.asdict(settings)
+    if out["robot"] == "kinematic":
+        del out["robot"]
+    return out

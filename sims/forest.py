@@ -8,11 +8,13 @@ cylinders; a vertical capsule cut by a horizontal beam is a circle of the trunk 
 (``contype="0" conaffinity="0"``) and one slide-joint sensor body so ``mjx.forward`` has a
 degree of freedom.
 
-Layout generators take a key first and return ``Forest``; they run eagerly (NumPy checks on
-the result), not under ``jit``.
+Layout generators take a key first and return ``Forest``. ``random_forest`` and clutter run
+eagerly (they check the count placed); ``sample_forest`` (its trunks), ``poisson_disc`` and
+``plantation_forest`` without clutter are pure functions of the key, for ``jit`` and ``vmap``.
 """
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -89,63 +91,99 @@ def sample_radii(key, num_trees: int) -> jnp.ndarray:
     return 0.5 * jnp.clip(dbh, DBH_MIN, DBH_MAX)
 
 
-def _poisson_disc(key, num_points, low, high, min_spacing, keep_clear=None, clear_dist=0.0):
-    """Dart throwing: accept candidates in order when >= min_spacing from every accepted one.
+def _candidates(key, num_points: int, low, high):
+    """(30 * num_points + 50, 2) darts uniform in the box [low, high) (default float type)."""
+    return jax.random.uniform(key, (30 * num_points + 50, 2), minval=low, maxval=high)
 
-    Candidates (30 * num_points + 50 of them) come from ``key``; acceptance is a sequential
-    NumPy pass, run once at forest-build time (eager, never traced).
+
+@functools.partial(jax.jit, static_argnums=1)
+def poisson_disc(key, num_points: int, low, high, min_spacing: float, keep_clear=None,
+                 clear_dist: float = 0.0):
+    """Dart throwing, a pure function of ``key`` (``jit`` and ``vmap`` friendly).
+
+    Candidates c (C = 30 N + 50 of them, uniform in the box, from ``key``) are taken in order;
+    c is accepted when fewer than N = ``num_points`` are placed, ||c - q|| >= ``clear_dist``
+    for every row q of ``keep_clear`` (Q, 2), and ||c - p|| >= ``min_spacing`` for every
+    accepted p. A ``lax.scan`` over the candidates carries (points (N, 2), count ()), so the
+    shapes are static and a short count is returned, never raised. Distances are in the
+    candidates' float type (float32, float64 under x64): in float32 only a distance within
+    about 1e-6 relative of its threshold could be decided otherwise than in float64.
 
     Args:
-      low, high: (2,) box corners. keep_clear: (Q, 2) points to stay ``clear_dist`` away from.
+      low, high: (2,) box corners [m]; keep_clear: (Q, 2) points to keep ``clear_dist`` from.
     Returns:
-      (num_points, 2) points (unfilled rows zero) and the number actually placed.
+      (points (N, 2) float32, unfilled rows zero; placed () int32, the number accepted).
     """
-    if num_points == 0:
-        return jnp.zeros((0, 2)), 0
-    num_candidates = 30 * num_points + 50
-    candidates = np.asarray(jax.random.uniform(key, (num_candidates, 2), minval=low,
-                                               maxval=high), np.float64)
-    clear = np.ones(num_candidates, bool)
+    candidates = _candidates(key, num_points, low, high)
+    clear = jnp.ones(candidates.shape[0], bool)
     if keep_clear is not None and keep_clear.shape[0] > 0:
-        keep = np.asarray(keep_clear, np.float64)
-        nearest = np.min(np.linalg.norm(candidates[:, None] - keep[None], axis=-1), axis=1)
-        clear = nearest >= clear_dist
-    points = np.zeros((num_points, 2))
-    count = 0
-    for candidate in candidates[clear]:
-        if count == num_points:
-            break
-        if count == 0 or np.min(np.sum((points[:count] - candidate) ** 2, -1)) >= min_spacing ** 2:
-            points[count] = candidate
-            count += 1
-    return jnp.asarray(points, jnp.float32), count
+        clear = jnp.min(_squared_distances(candidates, keep_clear), axis=1) >= jnp.square(
+            clear_dist)
+    rows = jnp.arange(num_points)
+    spacing_sq = jnp.square(jnp.asarray(min_spacing, candidates.dtype))
+
+    def throw(carry, dart):
+        points, count = carry
+        candidate, is_clear = dart
+        far = (_squared_distances(candidate[None], points)[0] >= spacing_sq) | (rows >= count)
+        accept = is_clear & jnp.all(far) & (count < num_points)
+        points = jnp.where((accept & (rows == count))[:, None], candidate, points)
+        return (points, count + accept.astype(jnp.int32)), None
+
+    start = (jnp.zeros((num_points, 2), candidates.dtype), jnp.zeros((), jnp.int32))
+    (points, placed), _ = jax.lax.scan(throw, start, (candidates, clear))
+    return points.astype(jnp.float32), placed
+
+
+def _squared_distances(a, b):
+    """(A, B) squared distances between rows of a (A, 2) and b (B, 2), in a's float type.
+    Per coordinate: a (A, B, 2) gap summed over its last axis runs many times slower on CPU."""
+    b = jnp.asarray(b, a.dtype)
+    dx = a[:, None, 0] - b[None, :, 0]
+    dy = a[:, None, 1] - b[None, :, 1]
+    return dx * dx + dy * dy
 
 
 def random_forest(key, num_trees: int, size=(60.0, 60.0), min_spacing: float = 2.0,
                   num_bushes: int = 0, num_logs: int = 0, keep_clear=None,
                   clearance: float = 1.5) -> Forest:
-    """Trees uniformly at random in [0, sx] x [0, sy] with a minimum trunk spacing.
+    """Trees uniformly at random in [0, sx] x [0, sy] with a minimum trunk spacing (eager).
 
     ``keep_clear`` (Q, 2): points (e.g. a planned path) no trunk centre comes within
-    ``clearance`` m of.
+    ``clearance`` m of. Under ``jit``: ``sample_forest``.
 
     Raises ValueError when the area cannot hold ``num_trees`` at ``min_spacing``.
     """
-    key_pos, key_rad, key_clutter = jax.random.split(key, 3)
-    size = jnp.asarray(size, jnp.float32)
-    if keep_clear is not None:
-        keep_clear = jnp.asarray(keep_clear, jnp.float32)[:, :2]
-    centres, placed = _poisson_disc(key_pos, num_trees, jnp.zeros(2), size, min_spacing,
-                                    keep_clear, clearance)
-    if placed < num_trees:
+    forest, placed = sample_forest(key, num_trees, size, min_spacing, keep_clear, clearance)
+    if int(placed) < num_trees:
         raise ValueError(
-            f"random_forest placed only {placed} of num_trees={num_trees} trees in a "
-            f"{tuple(np.asarray(size))} m area with min_spacing={min_spacing} m; "
+            f"random_forest placed only {int(placed)} of num_trees={num_trees} trees in a "
+            f"{tuple(np.asarray(size, np.float32))} m area with min_spacing={min_spacing} m; "
             "expected a larger area, fewer trees or a smaller spacing"
         )
-    avoid = centres if keep_clear is None else jnp.concatenate([centres, keep_clear], 0)
-    clutter = random_clutter(key_clutter, avoid, num_bushes, num_logs, jnp.zeros(2), size)
-    return Forest(centres, sample_radii(key_rad, num_trees), clutter)
+    avoid = forest.centres
+    if keep_clear is not None:
+        avoid = jnp.concatenate([avoid, jnp.asarray(keep_clear, jnp.float32)[:, :2]], 0)
+    clutter = random_clutter(jax.random.split(key, 3)[2], avoid, num_bushes, num_logs,
+                             jnp.zeros(2), jnp.asarray(size, jnp.float32))
+    return forest._replace(clutter=clutter)
+
+
+def sample_forest(key, num_trees: int, size=(60.0, 60.0), min_spacing: float = 2.0,
+                  keep_clear=None, clearance: float = 1.5):
+    """``random_forest`` without clutter as a pure JAX function of ``key`` (``jit``, ``vmap``).
+
+    Same key use as ``random_forest`` (trunk positions by ``poisson_disc``, radii by
+    ``sample_radii``). Nothing is raised under ``jit``: the caller checks ``placed``.
+
+    Returns:
+      (Forest with centres (N, 2) (rows >= placed are zero) and radii (N,), placed () int32).
+    """
+    key_pos, key_rad, _ = jax.random.split(key, 3)
+    keep = None if keep_clear is None else jnp.asarray(keep_clear, jnp.float32)[:, :2]
+    centres, placed = poisson_disc(key_pos, num_trees, jnp.zeros(2),
+                                   jnp.asarray(size, jnp.float32), min_spacing, keep, clearance)
+    return Forest(centres, sample_radii(key_rad, num_trees), empty_clutter()), placed
 
 
 def plantation_forest(key, num_rows: int = 8, trees_per_row: int = 20,
@@ -170,9 +208,12 @@ def random_clutter(key, centres, num_bushes: int, num_logs: int, low, high,
                    clearance: float = 1.8) -> Clutter:
     """Bushes (semi-axes 0.6-1.2 m wide, 0.5-0.9 m tall) and logs (2-6 m long, radius
     0.12-0.3 m) placed at least ``clearance`` m from every trunk centre."""
+    if num_bushes == 0 and num_logs == 0:  # traceable: no count to read back
+        return empty_clutter()
     key_b, key_bs, key_l, key_la, key_ll, key_lr = jax.random.split(key, 6)
-    bushes, nb = _poisson_disc(key_b, num_bushes, low, high, 2.5, centres, clearance)
-    logs, nl = _poisson_disc(key_l, num_logs, low, high, 4.0, centres, clearance + 1.5)
+    bushes, nb = poisson_disc(key_b, num_bushes, low, high, 2.5, centres, clearance)
+    logs, nl = poisson_disc(key_l, num_logs, low, high, 4.0, centres, clearance + 1.5)
+    nb, nl = int(nb), int(nl)
     bushes, logs = bushes[:nb], logs[:nl]
     widths = jax.random.uniform(key_bs, (nb, 2), minval=0.6, maxval=1.2)
     heights = jax.random.uniform(key_bs, (nb, 1), minval=0.5, maxval=0.9)

@@ -47,10 +47,10 @@ from sims.forest import (
     Clutter,
     World,
     _geom_bounds,
-    _poisson_disc,
     _put,
     _slot_mjcf,
     mjcf_document,
+    poisson_disc,
     random_clutter,
     sample_radii,
 )
@@ -246,8 +246,9 @@ def random_forest_3d(key, num_trees: int, size=(40.0, 40.0), min_spacing: float 
     size = jnp.asarray(size, jnp.float32)
     if keep_clear is not None:
         keep_clear = jnp.asarray(keep_clear, jnp.float32)[:, :2]
-    xy, placed = _poisson_disc(k_pos, num_trees, jnp.zeros(2), size, min_spacing, keep_clear,
-                               clearance)
+    xy, placed = poisson_disc(k_pos, num_trees, jnp.zeros(2), size, min_spacing, keep_clear,
+                              clearance)
+    placed = int(placed)
     if placed < num_trees:
         raise ValueError(
             f"random_forest_3d placed only {placed} of num_trees={num_trees} trees in a "

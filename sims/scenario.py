@@ -111,13 +111,26 @@ def _build_runs(key, path, moves, centres, radii, params, world, *, num_runs, so
         return lidar_observations(obs_key, world, pose, max_obs, max_range, num_beams,
                                   beam_noise, method, detect_kwargs)
 
-    def one_run(run):
-        key_odo, key_obs = jax.random.split(jax.random.fold_in(key, run))
-        controls = noisy_odometry(key_odo, moves, params)
-        obs_keys = jax.random.split(key_obs, moves.shape[0])
-        return controls, jax.vmap(observe)(obs_keys, path[1:])
+    return jax.vmap(lambda run: simulate_run(jax.random.fold_in(key, run), moves, path[1:],
+                                             params, observe))(jnp.arange(num_runs))
 
-    return jax.vmap(one_run)(jnp.arange(num_runs))
+
+def simulate_run(key, moves, poses, params: Params, observe, sequential: bool = False):
+    """One run along a known true path: the simulator every study and test scenario uses.
+
+    controls = Eq. (1) noisy odometry of the true ``moves`` (T, 3); observations[t] =
+    ``observe(key_t, poses[t])`` at the true poses (T, 3) after each move (or any pytree whose
+    leaves have T rows, e.g. (poses, step indices)). ``key`` splits into
+    the odometry key and the observation key, which splits into one key a step.
+    ``sequential``: steps through ``lax.map`` instead of ``vmap`` (lidar detection holds large
+    per-step work arrays). Returns (controls (T, 3), observations with leaves (T, K, ...)).
+    """
+    key_odometry, key_obs = jax.random.split(key)
+    controls = noisy_odometry(key_odometry, moves, params)
+    inputs = (jax.random.split(key_obs, moves.shape[0]), poses)
+    if sequential:
+        return controls, jax.lax.map(lambda args: observe(*args), inputs)
+    return controls, jax.vmap(observe)(*inputs)
 
 
 def build_scenario(key, forest: Forest, path, num_runs: int, *, source: str = "analytic",

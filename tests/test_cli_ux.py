@@ -114,6 +114,7 @@ def test_every_config_key_and_param_has_a_unit():
     data = studies.study_config_to_dict(studies.demo_study_config())
     keys = _flat_keys({k: v for k, v in data.items() if k not in ("params", "sweep")})
     keys += [f"params.{name}" for name in Params._fields]
+    keys += ["scenario.robot"]  # written out only when it is not the default, "kinematic"
     missing = [key for key in keys if key not in cli.CONFIG_UNITS]
     assert not missing, f"add the units of {missing} to cli.CONFIG_UNITS"
     stale = sorted(set(cli.CONFIG_UNITS) - set(keys))

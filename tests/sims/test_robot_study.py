@@ -1,0 +1,134 @@
+"""Studies driven by the MJX wheeled robot (``scenario.robot = "mjx_wheeled"``): a small study
+through ``run_study``, bit-identical per-run results across chunk sizes, odometry that is the
+robot's encoder dead reckoning (not the truth's moves, not Eq. (1) noise), and the settings
+that are refused with the keys named.
+
+One robot simulator compile (3 runs x 8 intervals of 0.5 s) and one filter compile serve the
+default-tier tests; per-run worlds need a second robot compile and run in the slow tier.
+"""
+import jax
+import numpy as np
+import pytest
+
+from jaxslam import studies
+from jaxslam.motion import odometry_from_poses
+
+ROBOT = ["num_runs=3", "filter.num_particles=8", "filter.max_landmarks=24", "filter.max_obs=8",
+         "scenario.num_steps=8", "scenario.num_trees=15", "scenario.size=30.0",
+         'scenario.robot="mjx_wheeled"',
+         # The seed paper's FastSLAM compiles fastest; the robot, not the filter, is tested.
+         "filter.proposal='motion'", "filter.anchor_empty_map=false",
+         "params.motion_outlier_probability=0.0"]
+
+
+def robot_config(*overrides) -> studies.StudyConfig:
+    return studies.load_study_config(None, ROBOT + list(overrides))
+
+
+@pytest.fixture(scope="module")
+def chunked_studies(tmp_path_factory):
+    """The same 3-run robot study with chunks of 3 runs and of 1 run."""
+    root = tmp_path_factory.mktemp("robot_study")
+    return {size: studies.run_study(robot_config(f"chunk_size={size}"), root / f"chunk{size}",
+                                    progress=False)
+            for size in (3, 1)}
+
+
+@pytest.fixture(scope="module")
+def batch():
+    from sims.batch import scenario_batch
+
+    return jax.tree.map(np.asarray, scenario_batch(robot_config(), np.arange(3)))
+
+
+def test_robot_study_runs_and_is_identical_across_chunk_sizes(chunked_studies):
+    tables = {size: result.table for size, result in chunked_studies.items()}
+    assert tables[3].num_rows == 3 and len(list(
+        (chunked_studies[1].out_dir / "runs").glob("chunk-*.parquet"))) == 3
+    assert np.all(np.isfinite(tables[3].column("final_pose_error").to_numpy()))
+    assert np.all(tables[3].column("num_trees_seen").to_numpy() > 0)
+    assert tables[3].column_names == tables[1].column_names
+    for name in tables[3].column_names:
+        np.testing.assert_array_equal(tables[3].column(name).to_numpy(),
+                                      tables[1].column(name).to_numpy(), err_msg=name)
+    for run in range(3):
+        traces = [np.load(result.out_dir / "traces" / name)
+                  for result, name in ((chunked_studies[3], "traces-000000-000003.npz"),
+                                       (chunked_studies[1], f"traces-{run:06d}-{run + 1:06d}.npz"))]
+        np.testing.assert_array_equal(traces[0]["pose_error"][run], traces[1]["pose_error"][0])
+
+
+def test_robot_odometry_is_encoder_dead_reckoning_not_eq1_noise(batch):
+    """The controls are not the true path's moves: their errors are finite and above float32
+    round-off (1e-3 m or rad; round-off on these poses is about 1e-5), and every run drives
+    its own commands."""
+    from sims.batch import simulation_params, study_world
+
+    config = robot_config()
+    min_translation = float(simulation_params(config.scenario).min_translation)
+    truth = batch.truth_pose
+    assert truth.shape == (3, 9, 3) and batch.controls.shape == (3, 8, 3)
+    exact = np.asarray(odometry_from_poses(truth[:, :-1], truth[:, 1:], min_translation))
+    error = batch.controls - exact
+    error[..., [0, 2]] = np.angle(np.exp(1j * error[..., [0, 2]]))
+    assert np.all(np.isfinite(error))
+    assert np.max(np.abs(error)) > 1e-3
+    # Each run starts at the scenario path's first pose (shared world) and then moves.
+    start = np.asarray(study_world(config.scenario, config.seed)[1])[0]
+    np.testing.assert_allclose(truth[:, 0], np.broadcast_to(start, (3, 3)), atol=1e-5)
+    assert not np.array_equal(batch.controls[0], batch.controls[1])
+    assert np.all(np.sum(np.abs(batch.controls[..., 1]), axis=1) > 0.1)
+    # The observations are the analytic ones: each carries a tree id and a true range.
+    valid = batch.observations.valid
+    ids = batch.observations.landmark_id
+    assert valid.any() and np.all(ids[valid] >= 0)
+    gap = batch.tree_centres[0][ids[0]] - truth[0, 1:, None, :2]
+    true_range = np.hypot(gap[..., 0], gap[..., 1])
+    # Table 2 range noise: 0.005 m/m at 20 m is 0.1 m; 0.6 m is six of those stds.
+    assert np.max(np.abs(batch.observations.z[0, ..., 0] - true_range)[valid[0]]) < 0.6
+
+
+def test_robot_runs_do_not_depend_on_the_runs_asked_together(batch):
+    from sims.batch import scenario_batch
+
+    part = jax.tree.map(np.asarray, scenario_batch(robot_config(), np.array([2, 1])))
+    for got, want in zip(jax.tree.leaves(part), jax.tree.leaves(batch)):
+        np.testing.assert_array_equal(got, want[[2, 1]])
+
+
+def test_robot_setting_is_written_only_when_not_the_default():
+    kinematic = studies.load_study_config(None, [])
+    assert "robot" not in studies.study_config_to_dict(kinematic)["scenario"]
+    config = robot_config()
+    written = studies.study_config_to_dict(config)
+    assert written["scenario"]["robot"] == "mjx_wheeled"
+    assert studies.study_config_from_dict(written) == config
+    from jaxslam.cli import config_rows
+
+    assert ("scenario.robot", '"mjx_wheeled"', "-", "") in config_rows(config)
+
+
+@pytest.mark.parametrize("overrides, keys", [
+    (['scenario.observation_source="lidar"'], ("scenario.robot", "scenario.observation_source")),
+    (["scenario.odometry_noise_scale=2.0"], ("scenario.odometry_noise_scale", "scenario.robot")),
+    (['scenario.robot="tracked"'], ("scenario.robot", "mjx_wheeled")),
+])
+def test_bad_robot_settings_name_the_keys(overrides, keys):
+    with pytest.raises(ValueError) as error:
+        studies.load_study_config(None, ROBOT + overrides)
+    for key in keys:
+        assert key in str(error.value)
+
+
+@pytest.mark.slow
+def test_per_run_worlds_start_each_robot_on_its_own_path():
+    from sims.batch import run_world, scenario_batch
+
+    config = robot_config('scenario.world="per_run"', 'scenario.path="random"')
+    batch = jax.tree.map(np.asarray, scenario_batch(config, np.arange(2)))
+    for run in range(2):
+        forest, path = run_world(config.scenario, config.seed, run)
+        np.testing.assert_allclose(batch.truth_pose[run, 0], np.asarray(path)[0], atol=1e-5)
+        np.testing.assert_array_equal(batch.tree_centres[run], np.asarray(forest.centres,
+                                                                          np.float32))
+    assert not np.array_equal(batch.tree_centres[0], batch.tree_centres[1])
