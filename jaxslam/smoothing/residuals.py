@@ -9,7 +9,7 @@ first guess ``geometry.inverse_range_bearing``. Jacobians come from ``jax.jacfwd
 
 The least squares lives on the host in float64 (its normal equations are badly conditioned:
 a pure turn's move is pinned to a millimetre while a landmark sits tens of metres away), so
-each host entry point enables x64 for its call alone (``jax.enable_x64``), takes NumPy
+each host entry point runs in float64 for its call alone (``host.in_float64``), takes NumPy
 arrays and returns writable NumPy arrays. The filter's own dtype is left untouched. A
 compiled function is cached per input shape; batches are padded to a power of two, so one
 problem compiles once, every Levenberg-Marquardt step reuses it and problems of similar size
@@ -25,6 +25,7 @@ import numpy as np
 
 from jaxslam.ekf import measurement_std
 from jaxslam.geometry import inverse_range_bearing, range_bearing, relative, wrap_angle
+from jaxslam.host import in_float64
 from jaxslam.motion import apply_odometry, odometry_std
 from jaxslam.types import Params
 
@@ -104,7 +105,7 @@ def _bucket(size: int) -> int:
 
 
 def _batched(function, *arrays, shared=()):
-    """``function(*arrays, *shared)`` with x64 enabled, as writable NumPy arrays.
+    """``function(*arrays, *shared)`` in float64 (``host.in_float64``), as writable NumPy arrays.
 
     ``arrays`` (each (n, ...)) are taken in float64 (converted before the call, so no digit is
     lost) and padded with rows of zeros to ``_bucket(n)`` rows, so problems of similar size
@@ -115,9 +116,8 @@ def _batched(function, *arrays, shared=()):
     size = arrays[0].shape[0]
     padded = tuple(np.concatenate([a, np.zeros((_bucket(size) - size,) + a.shape[1:])])
                    for a in arrays)
-    with jax.enable_x64(True):  # for this call only: the filter's dtype stays as it is
-        out = function(*padded, *shared)
-        return jax.tree.map(lambda value: np.asarray(value)[:size].copy(), out)
+    out = in_float64(function, *padded, *shared)  # x64 for this call only, on the CPU
+    return jax.tree.map(lambda value: value[:size].copy(), out)
 
 
 def _params_float64(params: Params) -> Params:
