@@ -21,10 +21,8 @@ Shapes: T steps, K observations per step, S associated observations, L smoothed 
 """
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
