@@ -34,6 +34,7 @@ from jaxslam.geometry import LOG_2PI, wrap_angle
 from jaxslam.motion import (apply_odometry, burst_variance_factor, control_to_odometry,
                             motion_log_density, odometry_std, predict_pose)
 from jaxslam.types import Params
+from jaxslam.spd3 import cholesky3, log_det_from_cholesky3, solve_lower3, spd_inverse3
 
 # Sigma_u is singular for a pure turn and badly conditioned for a short move; the jitter added
 # to its diagonal is relative to its largest variance (so it stays below the lateral variance
@@ -154,19 +155,18 @@ def observation_proposal(predicted_pose, pose_cov, z, match, predicted: Predicte
     info_obs = jnp.einsum("kai,kab,kbj->ij", hx, s_inv, hx)
     nu = jnp.stack([nu_range, nu_bearing], -1)
     info_vec = jnp.einsum("kai,kab,kb->i", hx, s_inv, nu)
-    precision = jnp.linalg.inv(pose_cov) + info_obs
-    cov = jnp.linalg.inv(precision)
-    cov = 0.5 * (cov + cov.T)
+    pose_info, pose_log_det = spd_inverse3(pose_cov)
+    precision = pose_info + info_obs
+    cov, precision_log_det = spd_inverse3(precision)
     mean = predicted_pose + cov @ info_vec
     mean = mean.at[2].set(wrap_angle(mean[2]))
     # log N(nu; 0, Hx Sigma_u Hx^T + S) by Woodbury and the determinant lemma:
     # nu^T (.)^-1 nu = nu^T S^-1 nu - b^T Lambda^-1 b, log det (.) = log det S
     # + log det Sigma_u + log det Lambda, with b = Hx^T S^-1 nu and Lambda the precision.
     quad = jnp.einsum("ka,kab,kb->", nu, s_inv, nu) - info_vec @ cov @ info_vec
-    log_det = (jnp.sum(jnp.where(matched, p.log_det, 0.0)) + jnp.linalg.slogdet(pose_cov)[1]
-               + jnp.linalg.slogdet(precision)[1])
+    log_det = (jnp.sum(jnp.where(matched, p.log_det, 0.0)) + pose_log_det + precision_log_det)
     log_evidence = -0.5 * (quad + log_det) - jnp.sum(weight) * LOG_2PI
-    return ObservationProposal(mean, jnp.linalg.cholesky(cov), jnp.any(matched), log_evidence)
+    return ObservationProposal(mean, cholesky3(cov), jnp.any(matched), log_evidence)
 
 
 def stack_proposals(pieces) -> ObservationProposal:
@@ -217,8 +217,8 @@ def gaussian_pose_log_density(pose, proposal: ObservationProposal):
     """log N(pose; mean, L L^T) with the heading difference wrapped. (3,) -> ()."""
     diff = pose - proposal.mean
     diff = diff.at[2].set(wrap_angle(diff[2]))
-    white = jax.scipy.linalg.solve_triangular(proposal.chol, diff, lower=True)
-    log_det = 2.0 * jnp.sum(jnp.log(jnp.diag(proposal.chol)))
+    white = solve_lower3(proposal.chol, diff)
+    log_det = log_det_from_cholesky3(proposal.chol)
     return -0.5 * jnp.sum(white**2) - 0.5 * log_det - 1.5 * LOG_2PI
 
 
