@@ -1,0 +1,199 @@
+"""Throughput against PythonRobotics' FastSLAM 1 at its own scale (issue 20, item 4).
+
+The reference figure: PythonRobotics' ``fast_slam1.py`` (P = 100 particles, 8 landmarks,
+unknown association in the sense that jaxslam is not told the ids) took 27.4 ms a step on this
+2-core CPU (measured once, in the session that filed issue 20; PythonRobotics is not a
+dependency, so the figure is a constant here, ``PYTHONROBOTICS_STEP_S``).
+
+Cases, each timed as compile time and run time apart (after ``block_until_ready``):
+
+  single   one run of T steps on an 8-tree forest (P = 100, M = 16 slots, K = 8), the whole
+           run one jitted call (``run_filter``): time a step = run time / T, so the per-call
+           cost is included; also the step called once a step from Python (``jit(step)``),
+           which pays the dispatch every step.
+  batched  R such runs vmapped in one call: time a run-step = run time / (R T).
+  study    R runs x P = 100 x M = 64 x K = 16 x T (the issue's batched case) on the default
+           simulated forest: particle-steps per second.
+
+Ratios are PythonRobotics' 27.4 ms over jaxslam's time a (run-)step; the issue's targets are
+>= 200x (single), >= 1000x (batched) and >= 200 k particle-steps/s (study).
+
+Usage:
+  python benchmarks/throughput.py                       # default proposal, all three cases
+  python benchmarks/throughput.py --proposal motion --runs 1000 --steps 200
+  python benchmarks/throughput.py --cases single --json out.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+PYTHONROBOTICS_STEP_S = 27.4e-3   # PythonRobotics FastSLAM 1, P = 100, 8 landmarks, this CPU
+TARGETS = {"single": 200.0, "batched": 1000.0, "study_particle_steps_per_s": 200e3}
+
+
+def _config(num_particles, max_landmarks, max_obs, proposal):
+    from jaxslam.types import FilterConfig
+
+    fields = dict(num_particles=num_particles, max_landmarks=max_landmarks, max_obs=max_obs)
+    if proposal != "default":
+        fields["proposal"] = proposal
+    return FilterConfig(**fields)
+
+
+def _small_world(num_runs, num_steps, max_obs, world="per_run"):
+    """R simulated runs on 8-tree forests (PythonRobotics' scale): controls, observations."""
+    from jaxslam.studies import StudyConfig, scenario_batch
+    from sims.config import ScenarioConfig
+
+    scenario = ScenarioConfig(num_trees=8, size=30.0, max_range=20.0, num_steps=num_steps,
+                              world=world)
+    study = StudyConfig(num_runs=num_runs, chunk_size=num_runs, scenario=scenario,
+                        filter=_config(100, 16, max_obs, "default"))
+    batch = jax.block_until_ready(scenario_batch(study, np.arange(num_runs)))
+    return batch
+
+
+def _timed(fn, *args, repeats=3):
+    """(compile seconds, median run seconds, output) of ``jax.jit(fn)`` on ``args``."""
+    jitted = jax.jit(fn)
+    tick = time.perf_counter()
+    compiled = jitted.lower(*args).compile()
+    compile_s = time.perf_counter() - tick
+    out = jax.block_until_ready(compiled(*args))
+    times = []
+    for _ in range(repeats):
+        tick = time.perf_counter()
+        out = jax.block_until_ready(compiled(*args))
+        times.append(time.perf_counter() - tick)
+    return compile_s, float(np.median(times)), out
+
+
+def bench_single(proposal, num_steps, repeats=5):
+    """One run as one call, and the same run one Python call a step."""
+    from jaxslam.filter import make_filter, run_filter
+    from jaxslam.types import default_params
+
+    config = _config(100, 16, 8, proposal)
+    params = default_params(config, max_range=20.0)
+    batch = _small_world(1, num_steps, 8)
+    controls, observations = batch.controls[0], jax.tree.map(lambda a: a[0], batch.observations)
+    start = batch.truth_pose[0, 0]
+    key = jax.random.PRNGKey(0)
+
+    def whole(key, controls, observations):
+        return run_filter(config, key, params, controls, observations, initial_pose=start)[1]
+
+    compile_s, run_s, _ = _timed(whole, key, controls, observations, repeats=repeats)
+    per_step_s = run_s / num_steps
+
+    filt = make_filter(config)
+    step = jax.jit(filt.step)
+    state = filt.init(start)
+    obs0 = jax.tree.map(lambda a: a[0], observations)
+    jax.block_until_ready(step(key, state, params, controls[0], obs0))
+    tick = time.perf_counter()
+    for t in range(num_steps):
+        obs_t = jax.tree.map(lambda a, t=t: a[t], observations)
+        state, _ = step(jax.random.fold_in(key, t), state, params, controls[t], obs_t)
+    jax.block_until_ready(state)
+    called_s = (time.perf_counter() - tick) / num_steps
+    row = dict(case="single", proposal=proposal, P=100, M=16, K=8, T=num_steps,
+               compile_s=compile_s, run_s=run_s, step_ms=1e3 * per_step_s,
+               ratio=PYTHONROBOTICS_STEP_S / per_step_s,
+               step_called_per_step_ms=1e3 * called_s,
+               ratio_called_per_step=PYTHONROBOTICS_STEP_S / called_s,
+               target=TARGETS["single"])
+    print(f"single   proposal={proposal:11s} P=100 M=16 K=8 T={num_steps}: compile "
+          f"{compile_s:5.1f} s, run {run_s:6.3f} s = {row['step_ms']:.3f} ms a step "
+          f"({row['ratio']:.0f}x PythonRobotics; target {TARGETS['single']:.0f}x); "
+          f"one Python call a step {row['step_called_per_step_ms']:.3f} ms "
+          f"({row['ratio_called_per_step']:.0f}x)")
+    return row
+
+
+def bench_batched(proposal, num_runs, num_steps):
+    """``num_runs`` small runs vmapped in one call."""
+    from jaxslam.filter import run_filter
+    from jaxslam.types import default_params
+
+    config = _config(100, 16, 8, proposal)
+    params = default_params(config, max_range=20.0)
+    batch = _small_world(num_runs, num_steps, 8)
+    keys = jax.random.split(jax.random.PRNGKey(0), num_runs)
+
+    def many(keys, controls, observations, starts):
+        def one(key, controls, observations, start):
+            trace = run_filter(config, key, params, controls, observations, initial_pose=start)[1]
+            return trace.mean_pose[-1]
+        return jax.vmap(one)(keys, controls, observations, starts)
+
+    compile_s, run_s, _ = _timed(many, keys, batch.controls, batch.observations,
+                                 batch.truth_pose[:, 0], repeats=1)
+    per_run_step_s = run_s / (num_runs * num_steps)
+    row = dict(case="batched", proposal=proposal, R=num_runs, P=100, M=16, K=8, T=num_steps,
+               compile_s=compile_s, run_s=run_s, run_step_us=1e6 * per_run_step_s,
+               ratio=PYTHONROBOTICS_STEP_S / per_run_step_s,
+               particle_steps_per_s=num_runs * 100 * num_steps / run_s,
+               target=TARGETS["batched"])
+    print(f"batched  proposal={proposal:11s} R={num_runs} P=100 M=16 K=8 T={num_steps}: compile "
+          f"{compile_s:5.1f} s, run {run_s:6.2f} s = {row['run_step_us']:.2f} us a run-step "
+          f"({row['ratio']:.0f}x PythonRobotics; target {TARGETS['batched']:.0f}x), "
+          f"{row['particle_steps_per_s'] / 1e3:.0f} k particle-steps/s")
+    return row
+
+
+def bench_study(proposal, num_runs, chunk, num_steps):
+    """The issue's batched case: R x P = 100 x M = 64 x K = 16 x T, default forest."""
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+    from filter_step import bench_batch
+
+    config = _config(100, 64, 16, proposal)
+    compile_s, filter_s, sim_s = bench_batch(num_runs, min(chunk, num_runs), 100, 64, 16,
+                                             num_steps, association=config.association,
+                                             proposal=config.proposal)
+    rate = (num_runs // min(chunk, num_runs)) * min(chunk, num_runs) * 100 * num_steps / filter_s
+    return dict(case="study", proposal=config.proposal, R=num_runs, chunk=chunk, P=100, M=64,
+                K=16, T=num_steps, compile_s=compile_s, run_s=filter_s, simulator_s=sim_s,
+                particle_steps_per_s=rate,
+                target=TARGETS["study_particle_steps_per_s"])
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--proposal", default="default",
+                        help="'default' (FilterConfig()'s) or a FilterConfig.proposal name")
+    parser.add_argument("--cases", nargs="+", default=["single", "batched", "study"],
+                        choices=["single", "batched", "study"])
+    parser.add_argument("--runs", type=int, default=1000, help="runs of the batched cases")
+    parser.add_argument("--chunk", type=int, default=250, help="chunk of the study case")
+    parser.add_argument("--steps", type=int, default=200)
+    parser.add_argument("--json", help="write the rows to this JSON file")
+    args = parser.parse_args(argv)
+    if args.runs < 1 or args.steps < 1 or args.chunk < 1:
+        parser.error("--runs, --steps and --chunk must be positive integers")
+    print(f"jax {jax.__version__} backend={jax.default_backend()} devices={jax.devices()}; "
+          f"PythonRobotics FastSLAM 1 reference {1e3 * PYTHONROBOTICS_STEP_S:.1f} ms a step")
+    rows = []
+    if "single" in args.cases:
+        rows.append(bench_single(args.proposal, args.steps))
+    if "batched" in args.cases:
+        rows.append(bench_batched(args.proposal, args.runs, args.steps))
+    if "study" in args.cases:
+        rows.append(bench_study(args.proposal, args.runs, args.chunk, args.steps))
+    if args.json:
+        with open(args.json, "w") as handle:
+            json.dump(rows, handle, indent=2)
+    return rows
+
+
+if __name__ == "__main__":
+    main()

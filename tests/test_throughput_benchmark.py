@@ -1,0 +1,35 @@
+"""benchmarks/throughput.py at a tiny size: its rows are consistent (a step's time is the run
+time over T, the ratio is PythonRobotics' 27.4 ms over it) and every time finite and positive.
+The full-size figures are the script's own job (issue 20; docs/results.md)."""
+import importlib.util
+import json
+import math
+import pathlib
+
+SCRIPT = pathlib.Path(__file__).resolve().parent.parent / "benchmarks" / "throughput.py"
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("throughput", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_tiny_single_and_batched_rows(tmp_path):
+    throughput = _load()
+    out = tmp_path / "rows.json"
+    rows = throughput.main(["--proposal", "motion", "--cases", "single", "batched",
+                            "--runs", "2", "--steps", "5", "--json", str(out)])
+    assert json.loads(out.read_text()) == rows
+    single, batched = rows
+    assert (single["case"], single["T"], batched["case"], batched["R"]) == ("single", 5,
+                                                                          "batched", 2)
+    for row in rows:
+        for name in ("compile_s", "run_s", "ratio"):
+            assert math.isfinite(row[name]) and row[name] > 0, (name, row[name])
+    reference = throughput.PYTHONROBOTICS_STEP_S
+    assert math.isclose(single["step_ms"], 1e3 * single["run_s"] / 5)
+    assert math.isclose(single["ratio"], reference / (single["run_s"] / 5))
+    assert math.isclose(batched["run_step_us"], 1e6 * batched["run_s"] / 10)
+    assert math.isclose(batched["particle_steps_per_s"], 2 * 100 * 5 / batched["run_s"])
