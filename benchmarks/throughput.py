@@ -32,7 +32,6 @@ import sys
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 PYTHONROBOTICS_STEP_S = 27.4e-3   # PythonRobotics FastSLAM 1, P = 100, 8 landmarks, this CPU
