@@ -67,6 +67,7 @@ from jaxslam.noise_fit import (MIN_MOVES, MIN_OBSERVATIONS, MIN_SIGHTINGS, STD_F
                                motion_noise_update, observation_noise_update)
 from jaxslam.types import FilterConfig, Observations, Params, default_params
 
+START_DETECTION = 0.1  # the first iteration's detection probability (``starting_params``)
 TRUST_FACTOR = 3.0  # most factor a noise group's typical std may move in one iteration
 _GROUP_FIELDS = (("rot1_noise", "rot2_noise"), ("trans_noise",),
                  ("range_noise", "range_std_floor"), ("bearing_noise", "bearing_std_floor"))
@@ -110,13 +111,23 @@ def starting_params(config: FilterConfig | None = None, dtype=jnp.float32, **ove
     Seed Table 1 motion noise doubled, and a sensor noise floor of 10 cm and 0.02 rad (a
     2-20x wider sensor than Table 2): too tight a start makes every observation a new
     landmark and leaves nothing to calibrate on; too wide a start only costs an iteration.
+
+    Existence: a detection probability of ``START_DETECTION`` (against the default false
+    alarm probability 0.05) costs a missed landmark log(0.9 / 0.95) = -0.054 in log-odds, so
+    a landmark born at ``existence_init`` 1 is deleted after 46 misses. The default 0.9
+    deletes it after two: a detector that misses more often than that (a camera reading
+    barcodes one step in three) has its landmarks deleted and started again, the smoother
+    then sees each tree as many landmarks, and the detection fit (``detection_fit``), which
+    counts a landmark's misses between its first and last sighting, sees only runs of
+    misses too short to delete. Too slow a deletion only costs an iteration.
     """
     base = default_params(config, dtype=dtype)
     values = dict(rot1_noise=2 * np.asarray(base.rot1_noise),
                   trans_noise=2 * np.asarray(base.trans_noise),
                   rot2_noise=2 * np.asarray(base.rot2_noise),
                   range_noise=(0.005, 0.0), bearing_noise=(0.0, 0.0),
-                  range_std_floor=0.1, bearing_std_floor=0.02)
+                  range_std_floor=0.1, bearing_std_floor=0.02,
+                  detection_probability=START_DETECTION)
     values.update(overrides)
     return default_params(config, dtype=dtype, **values)
 
