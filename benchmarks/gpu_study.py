@@ -8,16 +8,15 @@ sets the device memory. Two cases:
   analytic  filter only: R runs (default 100,000) x P=100, M=64, K=16, T=200 with analytic
             range-bearing observations (no lidar), the seed paper's FastSLAM proposal and
             stable matching (as ``benchmarks/filter_step.py``'s batched case). ``--world``:
-            "shared" (default) or "per_run" (each run draws its own forest and path). Per-run
-            worlds are drawn on the host, one run after another (rejection sampling of each
-            forest in NumPy): at 100,000 runs that host work, not the device, sets the time,
-            so the default world is the shared one (the filter program's cost per run is the
-            same; ``simulator_s`` shows the host's share).
+            "per_run" (default: each run draws its own forest and path inside the compiled
+            simulator, about 1 ms a run on the CPU) or "shared" (every run the same world,
+            for paired comparisons).
   lidar     the same filter on MJX lidar scans and trunk detection (``--lidar-runs``, 0 to
-            skip). Lidar studies share one world (per-run lidar worlds are not simulated:
-            ``sims.config`` refuses world = "per_run" with lidar); the scans are cast once and
-            each run adds its own beam noise and detects, which needs far more memory per run
-            than the filter, so its chunk is ``--lidar-chunk``.
+            skip), in the same kind of world. A shared world's scans are cast once and each
+            run adds its own beam noise and detects; a per-run world's trunks are written into
+            one MJX template model per run (``sims.forest.world_with_trunks``) and every run
+            casts its own culled scans. Detection needs far more memory per run than the
+            filter, so its chunk is ``--lidar-chunk``.
 
 The chunk: ``--chunk``, or, where the device reports its memory (GPUs), the largest multiple of
 the probe width whose filter program (its arguments, outputs and temporaries, measured by XLA
@@ -56,8 +55,8 @@ def study_config(args, num_runs: int, chunk: int, lidar: bool):
     """The ``StudyConfig`` of a case: ``num_runs`` runs in compiled calls of ``chunk`` runs."""
     from jaxslam import studies
 
-    scenario = ['scenario.observation_source="lidar"', 'scenario.world="shared"'] if lidar \
-        else [f'scenario.world="{args.world}"']
+    scenario = [f'scenario.world="{args.world}"'] + (
+        ['scenario.observation_source="lidar"'] if lidar else [])
     return studies.load_study_config(None, [
         f"num_runs={num_runs}", f"chunk_size={chunk}", f"run_width={chunk}",
         f"seed={args.seed}", f"filter.num_particles={args.particles}",
@@ -151,7 +150,7 @@ def parse_args(argv=None):
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--chunk", type=int, default=0,
                         help="runs per compiled call (default: from the device's memory)")
-    parser.add_argument("--world", choices=("shared", "per_run"), default="shared")
+    parser.add_argument("--world", choices=("shared", "per_run"), default="per_run")
     parser.add_argument("--association", default="stable")
     parser.add_argument("--proposal", default="motion")
     parser.add_argument("--lidar-runs", type=int, default=10_000, help="0: skip the lidar case")

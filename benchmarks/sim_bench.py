@@ -1,7 +1,9 @@
-"""Simulator benchmark: lidar scans per second, scenario build times and per-run worlds.
+"""Simulator benchmark: lidar scans per second, scenario build times, per-run worlds and the
+cost of per-run lidar worlds.
 
-Run: ``.venv/bin/python benchmarks/sim_bench.py [--quick]``. Compile and run times are printed
-apart; run times are measured after ``block_until_ready`` on a second call.
+Run: ``.venv/bin/python benchmarks/sim_bench.py [--quick | --only-per-run-lidar]``. Compile
+and run times are printed apart; run times are measured after ``block_until_ready`` on a
+second call.
 """
 from __future__ import annotations
 
@@ -90,18 +92,52 @@ def bench_per_run_worlds(num_runs: int, eager_runs: int):
               f"{sim_first:.2f} s, run {sim_run:.3f} s ({1e3 * sim_run / num_runs:.2f} ms/run)")
 
 
+def bench_per_run_lidar(num_runs: int, num_steps: int):
+    """Simulator cost per run (``scenario_batch``: world, odometry, observations; all
+    ``num_runs`` runs in one call of width ``num_runs``) for per-run lidar worlds (each run's
+    trunks written into one template MJX world, T culled 1440-beam scans a run, then beam
+    noise and Kasa detection) against shared-world lidar (T scans cast once for the study,
+    each run adds noise and detects) and per-run analytic observations. 80 trees in 60 m x
+    60 m, loop path, K=16. "first" = trace + compile + first call (for the shared world also
+    its MJX model and its T scans, cast once per study); "run" = a second call."""
+    from jaxslam import studies
+    from sims import batch
+
+    cases = {"per-run lidar": ("per_run", "lidar"), "shared lidar": ("shared", "lidar"),
+             "per-run analytic": ("per_run", "analytic")}
+    for name, (world, source) in cases.items():
+        config = studies.load_study_config(None, [
+            f"scenario.world='{world}'", f"scenario.observation_source='{source}'",
+            "scenario.num_trees=80", "scenario.size=60.0", f"scenario.num_steps={num_steps}",
+            "filter.max_obs=16", f"num_runs={num_runs}", f"run_width={num_runs}"])
+        batch.study_world.cache_clear()  # the shared world's model and scans count as "first"
+        batch._simulator.cache_clear()
+        ids = np.arange(num_runs)
+        first, run, _ = timed(lambda: batch.scenario_batch(config, ids))  # noqa: B023
+        print(f"{name:17}: {num_runs} runs x {num_steps} steps: first (compile) {first:6.2f} s, "
+              f"run {run:6.3f} s = {1e3 * run / num_runs:8.2f} ms/run "
+              f"({num_runs * num_steps / run:8.0f} run-steps/s)")
+
+
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--quick", action="store_true", help="smaller sizes")
+    parser.add_argument("--only-per-run-lidar", action="store_true",
+                        help="only the per-run lidar cost (20 runs x 100 steps)")
     args = parser.parse_args()
+    if args.only_per_run_lidar:
+        bench_per_run_lidar(20, 100)
+        return
     print(f"jax {jax.__version__}, devices {jax.devices()}")
     bench_scans(64 if args.quick else 256)
     if args.quick:
         bench_scenarios(100, 200, 1, 20)
         bench_per_run_worlds(200, 3)
+        bench_per_run_lidar(20, 100)
     else:
         bench_scenarios(1000, 200, 4, 50)
         bench_per_run_worlds(1000, 10)
+        bench_per_run_lidar(20, 100)
 
 
 if __name__ == "__main__":

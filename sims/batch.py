@@ -9,8 +9,10 @@ from ``fold_in(key, 0)`` (the filter uses ``fold_in(key, 1)``) and, with
 alone), so runs differ only in noise: paired comparisons, but one world's luck.
 
 A per-run world is drawn inside the compiled, vmapped simulator (``draw_run_world``, static
-shapes); a run whose forest cannot hold its trees is refused afterwards, on the host, with a
-ValueError naming the runs and how many of those simulated were affected.
+shapes); its lidar scans are cast in a template MJX world whose trunk rows hold the run's
+trunks (``run_lidar_world``), so per-run lidar runs stay one vmapped program. A run whose
+forest cannot hold its trees is refused afterwards, on the host, with a ValueError naming
+the runs and how many of those simulated were affected.
 """
 from __future__ import annotations
 
@@ -194,30 +196,19 @@ def _simulator(settings: ScenarioConfig, seed: int, max_obs: int):
     radii = jnp.asarray(forest.radii, jnp.float32)
     path = jnp.asarray(path, jnp.float32)
     moves = true_moves(path, params.min_translation)
-    gap = path[:, None, :2] - centres[None]
-    in_range = jnp.min(jnp.hypot(gap[..., 0], gap[..., 1]), axis=0) <= settings.max_range
+    in_range = trees_in_range(path, centres, settings.max_range)
     if settings.observation_source == "lidar":
         # Every run follows the same true path through the same forest, so the noise-free
         # scans are cast once (T scans) and each run only adds its own beam noise and detects.
-        from jaxslam.detect import detect_trunks
-        from sims.lidar import add_range_noise, beam_angles, scan_2d_full
-
         lidar_world = world_from_forest(forest)
-        clean_scans = jax.lax.map(
-            lambda pose: scan_2d_full(lidar_world, pose, LIDAR_BEAMS, settings.max_range).ranges,
-            path[1:])
-        angles = jnp.asarray(beam_angles(LIDAR_BEAMS), jnp.float32)
+        clean_scans = jax.lax.map(lambda pose: clean_scan(settings, lidar_world, pose),
+                                  path[1:])
 
     def observe(key, pose_and_step):
         pose, step = pose_and_step
         if settings.observation_source == "analytic":
             return scenario_lib.analytic_observations(key, pose, centres, radii, params, max_obs)
-        key_noise, key_detect = jax.random.split(key)
-        ranges = add_range_noise(key_noise, clean_scans[step], settings.max_range,
-                                 LIDAR_BEAM_NOISE)
-        return detect_trunks(ranges, angles, settings.detection, max_obs=max_obs,
-                             max_range=settings.max_range, min_range=float(params.min_range),
-                             key=key_detect if settings.detection == "ransac" else None)
+        return detect_in_scan(settings, params, max_obs, key, clean_scans[step])
 
     def one_run(run_id):
         run_key = jax.random.fold_in(jax.random.PRNGKey(seed), run_id)
@@ -235,6 +226,35 @@ def _simulator(settings: ScenarioConfig, seed: int, max_obs: int):
     return jax.jit(jax.vmap(one_run)), world
 
 
+def trees_in_range(path, centres, max_range: float):
+    """(N,) bool: trees whose centre comes within ``max_range`` of a pose of ``path``
+    (T+1, 3): the lidar studies' "seen" (detections carry no tree ids)."""
+    gap = path[:, None, :2] - centres[None]
+    return jnp.min(jnp.hypot(gap[..., 0], gap[..., 1]), axis=0) <= max_range
+
+
+def clean_scan(settings: ScenarioConfig, world, pose):
+    """Noise-free culled planar scan (LIDAR_BEAMS,) [m] of ``world`` from ``pose`` (3,)."""
+    from sims.lidar import scan_2d_full
+
+    return scan_2d_full(world, pose, LIDAR_BEAMS, settings.max_range).ranges
+
+
+def detect_in_scan(settings: ScenarioConfig, params: Params, max_obs: int, key, ranges):
+    """A run's lidar observation of one step: per-beam noise (``LIDAR_BEAM_NOISE``, from
+    ``split(key)[0]``) on the noise-free ``ranges`` (B,), then ``detect_trunks``
+    (``split(key)[1]`` for RANSAC): ``Observations`` with leaves (K, ...)."""
+    from jaxslam.detect import detect_trunks
+    from sims.lidar import add_range_noise, beam_angles
+
+    key_noise, key_detect = jax.random.split(key)
+    noisy = add_range_noise(key_noise, ranges, settings.max_range, LIDAR_BEAM_NOISE)
+    angles = jnp.asarray(beam_angles(LIDAR_BEAMS), jnp.float32)
+    return detect_trunks(noisy, angles, settings.detection, max_obs=max_obs,
+                         max_range=settings.max_range, min_range=float(params.min_range),
+                         key=key_detect if settings.detection == "ransac" else None)
+
+
 def observed_trees(observations, num_trees: int):
     """(N,) bool: trees observed at least once (analytic observations carry tree ids)."""
     ids = jnp.where(observations.valid, observations.landmark_id, num_trees)
@@ -247,27 +267,68 @@ def _run_world_key(seed: int, run_id):
 
 
 @functools.lru_cache(maxsize=8)
+def lidar_template(settings: ScenarioConfig):
+    """The MJX world every per-run lidar world is refilled from (``sims.forest.trunk_template``
+    with as many trunk slots as ``draw_run_world`` draws trees; the trunk height, sensor height
+    and culling slots of ``world_from_forest``'s defaults, as the shared world's)."""
+    from sims.forest import trunk_template
+
+    with jax.ensure_compile_time_eval():  # concrete arrays even when first asked in a trace
+        shapes = jax.eval_shape(
+            lambda key: draw_run_world(settings, key, _designed_path(settings)),
+            jax.random.PRNGKey(0))
+        return trunk_template(shapes[1].shape[0])
+
+
+def run_lidar_world(settings: ScenarioConfig, centres, radii):
+    """Run's MJX lidar world: ``lidar_template(settings)`` with the run's trunks ``centres``
+    (N, 2) and ``radii`` (N,) (``sims.forest.world_with_trunks``; ``jit`` and ``vmap``)."""
+    from sims.forest import world_with_trunks
+
+    return world_with_trunks(lidar_template(settings), centres, radii)
+
+
+@functools.lru_cache(maxsize=8)
 def _per_run_simulator(settings: ScenarioConfig, seed: int, max_obs: int):
     """jit(vmap(one run)) for per-run worlds: run_ids (R,) -> (controls (R, T, 3),
     observations, tree_seen (R, N), path (R, T+1, 3), centres (R, N, 2), radii (R, N),
-    placed (R,)). Each run draws its world in the program (``draw_run_world``). Analytic
-    observations (a lidar needs an MJX model of each run's forest, not built per run)."""
+    placed (R,)). Each run draws its world in the program (``draw_run_world``).
+
+    Lidar: each run's trunks are written into the trunk rows of one template MJX world
+    (``run_lidar_world``: arrays vmapped over runs, one compiled program) and its T scans are
+    cast along its own path with the culled scan (sectors refilled from the run's trunks);
+    steps go in sequence (``lax.map``, as the shared lidar path's detection), runs stay
+    vmapped. Each scan then gets the run's beam noise and detection as in the shared path
+    (``detect_in_scan``); "seen" is trees within range of the run's path."""
     from sims import scenario as scenario_lib
     from sims.paths import true_moves
 
     params = simulation_params(settings)
     designed_path = _designed_path(settings)
+    lidar = settings.observation_source == "lidar"
+    if lidar:
+        lidar_template(settings)  # built eagerly, before tracing
 
     def one_run(run_id):
         path, centres, radii, placed = draw_run_world(
             settings, _run_world_key(seed, run_id), designed_path)
         moves = true_moves(path, params.min_translation)
         run_key = jax.random.fold_in(jax.random.PRNGKey(seed), run_id)
+        if lidar:
+            world = run_lidar_world(settings, centres, radii)
+
+            def observe(key, pose):
+                return detect_in_scan(settings, params, max_obs, key,
+                                      clean_scan(settings, world, pose))
+        else:
+            def observe(key, pose):
+                return scenario_lib.analytic_observations(key, pose, centres, radii, params,
+                                                          max_obs)
         controls, observations = scenario_lib.simulate_run(
-            jax.random.fold_in(run_key, 0), moves, path[1:], params,
-            lambda key, pose: scenario_lib.analytic_observations(key, pose, centres, radii,
-                                                                 params, max_obs))
-        seen = observed_trees(observations, centres.shape[0])
+            jax.random.fold_in(run_key, 0), moves, path[1:], params, observe,
+            sequential=lidar)
+        seen = (trees_in_range(path, centres, settings.max_range) if lidar
+                else observed_trees(observations, centres.shape[0]))
         return controls, observations, seen, path, centres, radii, placed
 
     return jax.jit(jax.vmap(one_run))

@@ -45,8 +45,8 @@ class ScenarioConfig:
     odometry_noise_scale: multiplies the Table 1 noise of the simulated odometry.
     world: "shared" (every run follows one path through one forest, drawn from the seed:
     runs differ in noise only, for paired comparisons) or "per_run" (run i draws its own
-    forest and path from its run key: the spread over worlds is part of every metric;
-    analytic observations only).
+    forest and path from its run key: the spread over worlds is part of every metric; with
+    lidar, each run's trunks are written into one template MJX model, ``sims.batch``).
     robot: "kinematic" (the robot follows the path exactly; odometry = the true moves with
     Eq. (1) noise) or "mjx_wheeled" (the MJX differential-drive robot of ``sims.robot``,
     started at the path's first pose, driven by random wheel-speed commands with wheel slip,
@@ -70,10 +70,6 @@ class ScenarioConfig:
     def __post_init__(self):
         check_fields(SECTION, self, SCENARIO_RULES)
         check_choices(SECTION, dataclasses.asdict(self), SCENARIO_CHOICES)
-        if self.world == "per_run" and self.observation_source != "analytic":
-            raise ValueError("scenario.world='per_run' needs scenario.observation_source="
-                             "'analytic' (lidar scans are cast in one MJX model of a shared "
-                             "forest); use world='shared' for lidar studies")
         if self.robot == "mjx_wheeled" and self.observation_source != "analytic":
             raise ValueError("scenario.robot='mjx_wheeled' needs scenario.observation_source="
                              "'analytic' (lidar scans along each robot's own path are not "

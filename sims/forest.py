@@ -387,3 +387,61 @@ def mjcf_document(geom_lines: list[str], sensor_height: float = 0.5) -> str:
               '<inertial mass="1" pos="0 0 0" diaginertia="0.01 0.01 0.01"/>',
               "</body>", "</worldbody>", "</mujoco>"]
     return "\n".join(lines)
+
+
+def trunk_template(num_trees: int, trunk_height: float = 6.0, sensor_height: float = 0.5,
+                   num_slots: int = 6, ground: bool = True) -> World:
+    """A ``make_world`` of ``num_trees`` placeholder capsule trunks (no clutter), built once
+    (eagerly) and refilled per run by ``world_with_trunks``: its geoms are those
+    ``world_from_forest`` builds for any clutter-free forest of ``num_trees`` trunks (trunks
+    0..N-1, then the ground plane), so only the trunk rows of the arrays differ.
+
+    The placeholders stand on a 10 m grid with radius 0.1 m (the values never reach a scan:
+    ``world_with_trunks`` replaces every trunk row).
+    """
+    if num_trees < 1:
+        raise ValueError(f"trunk_template num_trees={num_trees}; expected >= 1")
+    side = int(np.ceil(np.sqrt(num_trees)))
+    index = np.arange(num_trees)
+    centres = 10.0 * np.stack([index % side, index // side], -1).astype(np.float32)
+    return make_world(centres, np.full(num_trees, 0.1, np.float32), trunk_height=trunk_height,
+                      sensor_height=sensor_height, num_slots=num_slots, ground=ground)
+
+
+def world_with_trunks(template: World, centres, radii) -> World:
+    """``template`` (``trunk_template``) with its N capsule trunks moved to ``centres``
+    (N, 2) [m] with ``radii`` (N,) [m]: a pure function (``jit``, ``vmap`` over runs).
+
+    A vertical capsule trunk n of a forest of trunk height h is (``forest_mjcf``): geom
+    position = geom xpos = (x_n, y_n, h/2), identity orientation, size = (r_n, h/2 - r_n, 0),
+    horizontal bound r_n (``_geom_bounds``). The template's trunk rows of the model
+    (geom_pos, geom_size), the data (geom_xpos; geom_xmat stays identity: the trunks are
+    static world geoms, so no ``mjx.forward`` is needed), ``geom_bound``, ``centres`` and
+    ``radii`` are replaced; h/2 is read from the template's trunk heights. Every other geom
+    (the ground plane) and the slot model are the template's. The result scans as
+    ``world_from_forest(Forest(centres, radii, empty_clutter()))`` of the same trunk height
+    (the MJCF route rounds positions and sizes to 1e-6 m).
+
+    Radii must be positive and below h/2 (not checked under ``jit``).
+    """
+    num = template.centres.shape[0]
+    centres = jnp.asarray(centres, template.data.geom_xpos.dtype)
+    radii = jnp.asarray(radii, template.model.geom_size.dtype)
+    if centres.shape != (num, 2) or radii.shape != (num,):
+        raise ValueError(f"world_with_trunks: the template has {num} trunks; got centres "
+                         f"{centres.shape} and radii {radii.shape}, expected ({num}, 2) and "
+                         f"({num},)")
+    types = np.asarray(template.model.geom_type)[:num]  # static under jit
+    if not np.all(types == mujoco.mjtGeom.mjGEOM_CAPSULE):
+        raise ValueError("world_with_trunks expects a template of capsule trunks "
+                         "(trunk_template); got geom types " + str(sorted(set(types.tolist()))))
+    half = template.data.geom_xpos[:num, 2]
+    xpos = jnp.concatenate([centres, half[:, None]], -1)
+    size = jnp.stack([radii, half - radii, jnp.zeros_like(radii)], -1)
+    model = template.model.replace(
+        geom_pos=template.model.geom_pos.at[:num].set(xpos.astype(template.model.geom_pos.dtype)),
+        geom_size=template.model.geom_size.at[:num].set(size))
+    data = template.data.replace(geom_xpos=template.data.geom_xpos.at[:num].set(xpos))
+    bound = template.geom_bound.at[:num].set(radii.astype(template.geom_bound.dtype))
+    return template._replace(model=model, data=data, centres=centres.astype(jnp.float32),
+                             radii=radii.astype(jnp.float32), geom_bound=bound)

@@ -669,8 +669,9 @@ def test_per_run_worlds_differ_by_run_and_do_not_depend_on_the_batch(tmp_path):
         np.testing.assert_array_equal(example["tree_centres"], centres[0])
 
 
-def test_per_run_worlds_refuse_lidar():
-    with pytest.raises(ValueError, match="world='per_run' needs scenario.observation_source"):
-        tiny_config("scenario.world='per_run'", "scenario.observation_source='lidar'")
+def test_per_run_worlds_accept_lidar_and_refuse_unknown_worlds():
+    """Per-run lidar worlds are simulated (tests/sims/test_per_run_lidar.py)."""
+    config = tiny_config("scenario.world='per_run'", "scenario.observation_source='lidar'")
+    assert config.scenario.world == "per_run"
     with pytest.raises(ValueError, match="'shared', 'per_run'"):
         tiny_config("scenario.world='mine'")
