@@ -43,10 +43,11 @@ class ScenarioConfig:
     observation_source: "analytic" (range-bearing to trunk centres with Table 2 noise) or
     "lidar" (MJX scans + trunk detection); detection: centroid | kasa | geometric | ransac;
     odometry_noise_scale: multiplies the Table 1 noise of the simulated odometry.
-    world: "shared" (every run follows one path through one forest, drawn from the seed:
-    runs differ in noise only, for paired comparisons) or "per_run" (run i draws its own
-    forest and path from its run key: the spread over worlds is part of every metric; with
-    lidar, each run's trunks are written into one template MJX model, ``sims.batch``).
+    world: "per_run" (the default: run i draws its own forest and path from its run key, so
+    the spread over worlds is part of every metric; with lidar, each run's trunks are written
+    into one template MJX model, ``sims.batch``) or "shared" (every run follows one path
+    through one forest, drawn from the seed: runs differ in noise only, for paired
+    comparisons).
     robot: "kinematic" (the robot follows the path exactly; odometry = the true moves with
     Eq. (1) noise) or "mjx_wheeled" (the MJX differential-drive robot of ``sims.robot``,
     started at the path's first pose, driven by random wheel-speed commands with wheel slip,
@@ -64,7 +65,7 @@ class ScenarioConfig:
     observation_source: str = "analytic"
     detection: str = "kasa"
     odometry_noise_scale: float = 1.0
-    world: str = "shared"
+    world: str = "per_run"
     robot: str = "kinematic"
 
     def __post_init__(self):
