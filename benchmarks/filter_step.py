@@ -100,7 +100,7 @@ def bench_batch(num_runs, chunk, num_particles, max_landmarks, max_obs, num_step
         final, trace = scan_filter(config, key, state, params, controls, observations)
         return trace.mean_pose[-1]
 
-    batched = jax.jit(jax.vmap(one, in_axes=(0, 0, 0, None)))
+    batched = None  # built at the first chunk: a shared world's start pose is one (3,)
     sim_s = filter_s = compile_s = 0.0
     compiled = None
     for start in range(0, num_runs, chunk):
@@ -110,7 +110,10 @@ def bench_batch(num_runs, chunk, num_particles, max_landmarks, max_obs, num_step
         sim_s += time.perf_counter() - tick
         keys = jax.vmap(lambda i: jax.random.fold_in(jax.random.PRNGKey(7), i))(
             jnp.asarray(ids, jnp.uint32))
-        args = (keys, scenario.controls, scenario.observations, scenario.truth_pose[0])
+        starts = scenario.truth_pose[..., 0, :]  # (3,) shared world, (R, 3) per-run worlds
+        args = (keys, scenario.controls, scenario.observations, starts)
+        if batched is None:
+            batched = jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0 if starts.ndim == 2 else None)))
         if compiled is None:
             tick = time.perf_counter()
             compiled = batched.lower(*args).compile()
@@ -121,7 +124,7 @@ def bench_batch(num_runs, chunk, num_particles, max_landmarks, max_obs, num_step
     runs = (num_runs // chunk) * chunk
     rate = runs * num_particles * num_steps / filter_s
     print(f"batch R={runs} P={num_particles} M={max_landmarks} K={max_obs} T={num_steps} "
-          f"chunk={chunk} assoc={association}: compile {compile_s:.1f} s, filter {filter_s:.1f} s "
+          f"chunk={chunk} assoc={association} world={study.scenario.world}: compile {compile_s:.1f} s, filter {filter_s:.1f} s "
           f"({rate / 1e3:.0f} k particle-steps/s), simulator {sim_s:.1f} s")
     return compile_s, filter_s, sim_s
 
