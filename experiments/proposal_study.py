@@ -168,7 +168,7 @@ def position_nees(pose, weight, truth):
     collapsed particle set stays invertible. Under a consistent filter it is chi-square with
     2 degrees of freedom: the 95 % ellipse holds the truth when it is <= 5.991."""
     mean = weight @ pose[:, :2]
-    diff = pose[:, :2] - mean
+    diff = pose[:, :2] - mean[None, :]
     cov = (diff * weight[:, None]).T @ diff + 1e-6 * jnp.eye(2, dtype=pose.dtype)
     error = truth[:2] - mean
     return error @ jnp.linalg.solve(cov, error)
