@@ -33,12 +33,18 @@ estimation use, with the particle filter as the E-step's data associator:
          low);
       6. limit each noise group's move to a factor ``TRUST_FACTOR`` an iteration
          (``_trust_region``), and stop when every group's typical std moved by less than
-         ``tol`` (relative).
+         ``tol`` (relative);
+    then (``scale_search``) multiply the motion and the observation noise by the factors of a
+    small grid whose filter log marginal likelihood is highest (``noise_scale``): on a log
+    whose association EM could not get right (trees split, no loop closure) the M-step's
+    noise is too narrow, and the likelihood, which does not condition on one association,
+    says by how much.
 
 Why this and not a likelihood search over a population of Params: the filter's marginal
 likelihood is a noisy, flat function of 9 motion and 4 sensor coefficients at the particle
 counts users run, while the smoother's residuals measure each noise group directly, with
 degrees of freedom in the thousands on a real log, and cost one filter run per iteration.
+Two multipliers of EM's result, on a 2x grid, are what the likelihood can pick reliably.
 
 Uncertainty: a group's std estimated from r_g degrees of freedom has a relative standard
 error of about 1 / sqrt(2 r_g) (chi-square); ``CalibrationInfo.relative_std`` reports it with
@@ -67,12 +73,15 @@ from jaxslam.detection_fit import sensor_update, single_share
 from jaxslam.filter import run_filter
 from jaxslam.landmark_merge import merge_split_landmarks, relabel
 from jaxslam.motion import control_to_odometry
+from jaxslam.noise_scale import (DEFAULT_SCALES, MOTION_FIELDS, OBSERVATION_FIELDS, ScaleSearch,
+                                 search_noise_scales)
 from jaxslam.noise_fit import (MIN_MOVES, MIN_OBSERVATIONS, MIN_SIGHTINGS, STD_FLOOR,
                                motion_noise_update, observation_noise_update)
 from jaxslam.types import FilterConfig, Observations, Params, default_params
 
 START_DETECTION = 0.1  # the first iteration's detection probability (``starting_params``)
 TRUST_FACTOR = 3.0  # most factor a noise group's typical std may move in one iteration
+_SCALED_FIELDS = MOTION_FIELDS + OBSERVATION_FIELDS
 _GROUP_FIELDS = (("rot1_noise", "rot2_noise"), ("trans_noise",),
                  ("range_noise", "range_std_floor"), ("bearing_noise", "bearing_std_floor"))
 _trace_lineage = jax.jit(lineage.trace_lineage)
@@ -95,6 +104,8 @@ class CalibrationInfo(NamedTuple):
       converged: whether the typical stds stopped moving (``tol``).
       verdict: one line in plain words.
       warnings: tuple of plain-word warnings (data too sparse, a group kept at its start).
+      noise_scales: ``noise_scale.ScaleSearch`` of the likelihood search after EM
+        (``scale_search=True``), else None.
     """
 
     iterations: int
@@ -107,6 +118,7 @@ class CalibrationInfo(NamedTuple):
     converged: bool
     verdict: str
     warnings: tuple
+    noise_scales: ScaleSearch | None = None
 
 
 def starting_params(config: FilterConfig | None = None, dtype=jnp.float32, **overrides) -> Params:
@@ -342,7 +354,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                      initial_pose=None, params: Params | None = None, *,
                      motion_model: str | None = None, iterations: int = 6, tol: float = 0.05,
                      calibrate_sensor: bool = True, smoother_iterations: int = 15,
-                     merge_landmarks: bool = False,
+                     merge_landmarks: bool = False, scale_search: bool = True,
+                     scales=DEFAULT_SCALES,
                      progress=None) -> tuple[Params, CalibrationInfo]:
     """Estimate the filter's settings from one log, with no ground truth (module docstring).
 
@@ -368,6 +381,10 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         noise x2) it broke two runs' calibration (final error 0.07 -> 1.47 m and
         0.04 -> 1.00 m), and on MRCLAM dataset 1 (5 robots, one run each) the median ratio of
         dead-reckoning to filter ATE was 1.63 with it against 2.19 without.
+      scale_search: after EM, multiply the motion and the observation noise by the
+        multipliers in ``scales`` of highest filter log marginal likelihood
+        (``noise_scale.search_noise_scales``, same key): EM on a poor association shrinks
+        the noise, the filter's likelihood does not.
       progress: optional callable(str) told of each iteration in one line.
     Returns:
       (params, info): the calibrated ``Params`` (dtype of ``params``) and ``CalibrationInfo``.
@@ -425,6 +442,20 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         values = {name: _plain(getattr(params, name)) for name in values}
         chosen = (f"; returned iteration {best + 1}'s settings (the highest log marginal "
                   f"likelihood of the {len(evaluated)} filter runs)")
+    found = None
+    if scale_search and last is not None:
+        params, found = search_noise_scales(config, key, params, controls, observations,
+                                            jnp.asarray(log.start, dtype), motion_scales=scales,
+                                            observation_scales=scales)
+        values.update({name: _plain(getattr(params, name)) for name in _SCALED_FIELDS})
+        chosen += (f"; noise scaled by the filter's likelihood: motion x{found.motion_scale:g},"
+                   f" observation x{found.observation_scale:g}")
+        if progress is not None:
+            progress(f"calibration: likelihood over noise scales {list(scales)}: motion "
+                     f"{np.round(found.motion_objective, 1).tolist()} -> x"
+                     f"{found.motion_scale:g}, observation "
+                     f"{np.round(found.observation_objective, 1).tolist()} -> x"
+                     f"{found.observation_scale:g}")
     typical.append(typical_stds(params, odometry, z_range))
     warnings += _fit_warnings(last, steps)
     verdict = ("converged" if converged else f"not converged after {done} iterations "
@@ -434,4 +465,4 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     relative_std = {group: 1.0 / np.sqrt(2.0 * n) for group, n in samples.items()}
     return params, CalibrationInfo(done, np.asarray(objective), np.asarray(costs),
                                    np.asarray(typical), values, relative_std, samples,
-                                   converged, verdict, tuple(warnings))
+                                   converged, verdict, tuple(warnings), found)

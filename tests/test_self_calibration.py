@@ -330,3 +330,28 @@ def test_radius_noise_from_history_recovers_the_scatter():
     assert abs(std - 0.03) < 0.003, std
     assert np.isnan(radius_noise_from_history(-np.ones((2, 3), int), np.ones((2, 3)),
                                               np.ones((2, 3), bool))[0])
+
+
+def test_scale_search_multiplies_the_em_result_by_the_chosen_scales():
+    """The likelihood search after EM (``noise_scale``) scales EM's noise and nothing else."""
+    from jaxslam.noise_scale import MOTION_FIELDS, OBSERVATION_FIELDS, ScaleSearch
+
+    controls, obs, poses = _log()
+    searched, info = _calibrated()
+    plain, plain_info = sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs,
+                                            poses[0], iterations=4, scale_search=False)
+    assert plain_info.noise_scales is None
+    assert isinstance(info.noise_scales, ScaleSearch)
+    found = info.noise_scales
+    assert found.motion_scale in found.motion_scales
+    assert found.observation_scale in found.observation_scales
+    assert f"motion x{found.motion_scale:g}" in info.verdict
+    # Same key, same EM: the fields the search scales are EM's times the chosen factor
+    # (float32 products: 1e-6 relative), every other field is EM's exactly.
+    for names, scale in ((MOTION_FIELDS, found.motion_scale),
+                         (OBSERVATION_FIELDS, found.observation_scale)):
+        for name in names:
+            np.testing.assert_allclose(getattr(searched, name),
+                                       scale * np.asarray(getattr(plain, name)), rtol=1e-6)
+    for name in ("max_range", "detection_probability", "association_gate"):
+        np.testing.assert_array_equal(getattr(searched, name), getattr(plain, name))

@@ -1,0 +1,143 @@
+"""Noise scales chosen by the particle filter's marginal likelihood, after EM.
+
+EM (``self_calibration``) fits each noise group to the residuals of the smoother on the best
+particle's data association. When that association is poor (a tree split into several
+landmarks, a loop that never closes), the smoothed path bends to fit each piece, its residuals
+are small, the fitted noise is too small, and the next E-step run with it splits the trees
+again: the loop is self-reinforcing, and on real logs (MRCLAM, Victoria Park) it ends with a
+noise several times narrower than what the filter needs.
+
+The filter's own estimate of the log marginal likelihood (``Trace.log_evidence`` summed)
+
+    log p(z_{1:T} | u_{1:T}, theta) ~= sum_t log sum_i w_{t-1}^i p(z_t | x^i_{0:t}, z_{1:t-1})
+
+does not condition on one association: it averages over the histories the particles hold,
+and it is what particle methods for static parameters maximise or sample (Andrieu, Doucet and
+Holenstein, "Particle Markov chain Monte Carlo methods", JRSS B 2010). Here it only picks two
+multipliers of the EM result, so its Monte Carlo noise matters little:
+
+    theta(s_m, s_o): Eq. (1)'s coefficients (Geiser et al., "Practical Implementation of
+    FastSLAM for Forestry Robot", ICAROB 2023) of rot1, trans and rot2 times s_m; the range
+    and bearing coefficients and floors (std = c_d d + c_0, Table 2's form) times s_o.
+
+Coordinate ascent on a grid that contains 1: first s_m over ``motion_scales`` with s_o = 1,
+then s_o over ``observation_scales`` at the chosen s_m. Each stage is one vmapped filter run
+over its candidates with one key (common random numbers: the candidates differ only in their
+settings, so the differences of their log likelihoods are much less noisy than each one).
+Scales below 1 are not searched by default: EM's failure is the shrinking loop above.
+
+Shapes: S candidates, T steps, K observations a step.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxslam.filter import run_filter
+from jaxslam.types import FilterConfig, Observations, Params
+
+MOTION_FIELDS = ("rot1_noise", "trans_noise", "rot2_noise")
+OBSERVATION_FIELDS = ("range_noise", "bearing_noise", "range_std_floor", "bearing_std_floor")
+DEFAULT_SCALES = (1.0, 2.0, 4.0, 8.0)
+
+
+class ScaleSearch(NamedTuple):
+    """What ``search_noise_scales`` found.
+
+    motion_scale / observation_scale: the chosen multipliers s_m, s_o.
+    motion_scales: (S_m,) candidates of the first stage; motion_objective: (S_m,) their log
+    marginal likelihoods. observation_scales / observation_objective: the same for the second
+    stage (at the chosen s_m).
+    """
+
+    motion_scale: float
+    observation_scale: float
+    motion_scales: np.ndarray
+    motion_objective: np.ndarray
+    observation_scales: np.ndarray
+    observation_objective: np.ndarray
+
+
+def scaled_noise(params: Params, motion_scale, observation_scale) -> Params:
+    """``params`` with the motion-noise fields times ``motion_scale`` and the observation
+    noise fields times ``observation_scale`` (scalars or (S,) arrays: then every leaf gets a
+    leading S axis, for ``jax.vmap``)."""
+    motion_scale = jnp.asarray(motion_scale, params.rot1_noise.dtype)
+    observation_scale = jnp.asarray(observation_scale, params.rot1_noise.dtype)
+    batch = jnp.broadcast_shapes(motion_scale.shape, observation_scale.shape)
+
+    def times(value, scale):
+        value = jnp.asarray(value)
+        scale = jnp.broadcast_to(scale, batch).reshape(batch + (1,) * value.ndim)
+        return jnp.broadcast_to(value, (1,) * len(batch) + value.shape) * scale
+
+    fields = {name: times(getattr(params, name), motion_scale) for name in MOTION_FIELDS}
+    fields.update({name: times(getattr(params, name), observation_scale)
+                   for name in OBSERVATION_FIELDS})
+    if batch:
+        rest = {name: jnp.broadcast_to(jnp.asarray(value), batch + jnp.shape(value))
+                for name, value in params._asdict().items() if name not in fields}
+        fields.update(rest)
+    return params._replace(**fields)
+
+
+def log_likelihoods(config: FilterConfig, key, candidates: Params, controls,
+                    observations: Observations, initial_pose=None) -> np.ndarray:
+    """(S,) the filter's log marginal likelihood of the log under each of the S stacked
+    ``candidates`` (leaves with a leading S axis), all run with the same ``key``."""
+    def one(params):
+        _, trace = run_filter(config, key, params, controls, observations, initial_pose)
+        return jnp.sum(trace.log_evidence)
+
+    return np.asarray(jax.vmap(one)(candidates), np.float64)
+
+
+def _best(scales, objective) -> float:
+    objective = np.where(np.isfinite(objective), objective, -np.inf)
+    if not np.any(np.isfinite(objective)):
+        return 1.0
+    return float(scales[int(np.argmax(objective))])
+
+
+def _check_scales(name: str, scales) -> np.ndarray:
+    scales = np.asarray(scales, np.float64)
+    if scales.ndim != 1 or scales.size == 0 or not np.all(np.isfinite(scales)) or np.any(
+            scales <= 0):
+        raise ValueError(f"{name} must be a non-empty 1-D sequence of finite positive "
+                         f"multipliers; got {scales.tolist()}")
+    return scales
+
+
+def search_noise_scales(config: FilterConfig, key, params: Params, controls,
+                        observations: Observations, initial_pose=None, *,
+                        motion_scales=DEFAULT_SCALES,
+                        observation_scales=DEFAULT_SCALES) -> tuple[Params, ScaleSearch]:
+    """Multiply ``params``' motion and observation noise by the scales of highest filter log
+    marginal likelihood (module docstring: coordinate ascent, motion first).
+
+    Args:
+      config, key, controls (T, 3), observations (T, K, ...), initial_pose (3,): as
+        ``run_filter``; every candidate runs with ``key``.
+      params: the settings to scale (EM's result).
+      motion_scales / observation_scales: the candidate multipliers of each stage.
+    Returns:
+      (scaled ``Params``, ``ScaleSearch``). A stage whose candidates all score NaN keeps 1.
+    """
+    motion_scales = _check_scales("motion_scales", motion_scales)
+    observation_scales = _check_scales("observation_scales", observation_scales)
+
+    def stage(motion, observation):
+        return log_likelihoods(config, key, scaled_noise(params, motion, observation),
+                               controls, observations, initial_pose)
+
+    motion_objective = stage(motion_scales, np.ones_like(motion_scales))
+    motion_scale = _best(motion_scales, motion_objective)
+    observation_objective = stage(np.full_like(observation_scales, motion_scale),
+                                  observation_scales)
+    observation_scale = _best(observation_scales, observation_objective)
+    return scaled_noise(params, motion_scale, observation_scale), ScaleSearch(
+        motion_scale, observation_scale, motion_scales, motion_objective, observation_scales,
+        observation_objective)
