@@ -7,24 +7,35 @@ are small, the fitted noise is too small, and the next E-step run with it splits
 again: the loop is self-reinforcing, and on real logs (MRCLAM, Victoria Park) it ends with a
 noise several times narrower than what the filter needs.
 
-The filter's own estimate of the log marginal likelihood (``Trace.log_evidence`` summed)
+The filter's own estimate of the log marginal likelihood (``Trace.log_evidence`` summed: per
+step, the log of the weighted mean over particles of each particle's incremental weight, its
+observation likelihood with the proposal's correction, and for an observation that starts a
+landmark the new-landmark credit of ``ekf.unexplained_log_likelihood``)
 
-    log p(z_{1:T} | u_{1:T}, theta) ~= sum_t log sum_i w_{t-1}^i p(z_t | x^i_{0:t}, z_{1:t-1})
+    log p(z_{1:T} | u_{1:T}, theta) ~= sum_t log sum_i w_{t-1}^i w_t^i(increment)
 
-does not condition on one association: it averages over the histories the particles hold,
-and it is what particle methods for static parameters maximise or sample (Andrieu, Doucet and
-Holenstein, "Particle Markov chain Monte Carlo methods", JRSS B 2010). Here it only picks two
-multipliers of the EM result, so its Monte Carlo noise matters little:
+does not condition on one association: it averages over the histories the particles hold.
+Maximising it over static parameters is the particle filter's maximum-likelihood estimate
+(Kantas, Doucet, Singh, Maciejowski and Chopin, "On particle methods for parameter estimation
+in state-space models", Statistical Science 2015). Here it only picks two multipliers of the
+EM result:
 
     theta(s_m, s_o): Eq. (1)'s coefficients (Geiser et al., "Practical Implementation of
     FastSLAM for Forestry Robot", ICAROB 2023) of rot1, trans and rot2 times s_m; the range
     and bearing coefficients and floors (std = c_d d + c_0, Table 2's form) times s_o.
 
-Coordinate ascent on a grid that contains 1: first s_m over ``motion_scales`` with s_o = 1,
-then s_o over ``observation_scales`` at the chosen s_m. Each stage is one vmapped filter run
-over its candidates with one key (common random numbers: the candidates differ only in their
-settings, so the differences of their log likelihoods are much less noisy than each one).
-Scales below 1 are not searched by default: EM's failure is the shrinking loop above.
+Coordinate ascent on a grid that contains 1 (EM's own result is always a candidate): first
+s_m over ``motion_scales`` with s_o = 1, then s_o over ``observation_scales`` at the chosen
+s_m; not a joint maximum. Each stage is one vmapped filter run over its candidates with one
+key (common random numbers: the candidates differ only in their settings, so the differences
+of their log likelihoods are less noisy than each one). Scales below 1 are not searched by
+default: EM's failure is the shrinking loop above.
+
+Known bias (not corrected): the new-landmark credit is the density at the gate under the
+observation's own noise, so it grows by 2 log s when the observation noise shrinks by s. On a
+log where many observations start landmarks (the split-tree case) the score therefore favours
+a narrow observation noise, and the observation stage tends to keep 1 there (Victoria Park,
+docs/results.md); the motion stage has no such term.
 
 Shapes: S candidates, T steps, K observations a step.
 """
@@ -95,19 +106,23 @@ def log_likelihoods(config: FilterConfig, key, candidates: Params, controls,
     return np.asarray(jax.vmap(one)(candidates), np.float64)
 
 
-def _best(scales, objective) -> float:
+def best_scale(scales, objective) -> float:
+    """The scale (S,) of highest finite ``objective`` (S,), the first of ties; 1 when no
+    objective is finite (NaN or +-inf everywhere)."""
     objective = np.where(np.isfinite(objective), objective, -np.inf)
     if not np.any(np.isfinite(objective)):
         return 1.0
-    return float(scales[int(np.argmax(objective))])
+    return float(np.asarray(scales)[int(np.argmax(objective))])
 
 
-def _check_scales(name: str, scales) -> np.ndarray:
+def check_scales(name: str, scales) -> np.ndarray:
+    """``scales`` as a float64 (S,) array; ValueError unless it is a non-empty 1-D sequence of
+    finite positive multipliers that contains 1 (EM's own result)."""
     scales = np.asarray(scales, np.float64)
     if scales.ndim != 1 or scales.size == 0 or not np.all(np.isfinite(scales)) or np.any(
-            scales <= 0):
+            scales <= 0) or not np.any(scales == 1.0):
         raise ValueError(f"{name} must be a non-empty 1-D sequence of finite positive "
-                         f"multipliers; got {scales.tolist()}")
+                         f"multipliers that contains 1; got {scales.tolist()}")
     return scales
 
 
@@ -122,22 +137,24 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
       config, key, controls (T, 3), observations (T, K, ...), initial_pose (3,): as
         ``run_filter``; every candidate runs with ``key``.
       params: the settings to scale (EM's result).
-      motion_scales / observation_scales: the candidate multipliers of each stage.
+      motion_scales / observation_scales: the candidate multipliers of each stage (each must
+        contain 1; ``(1.0,)`` leaves that group as it is).
     Returns:
-      (scaled ``Params``, ``ScaleSearch``). A stage whose candidates all score NaN keeps 1.
+      (scaled ``Params``, ``ScaleSearch``). A stage whose candidates all score a non-finite
+      value keeps 1.
     """
-    motion_scales = _check_scales("motion_scales", motion_scales)
-    observation_scales = _check_scales("observation_scales", observation_scales)
+    motion_scales = check_scales("motion_scales", motion_scales)
+    observation_scales = check_scales("observation_scales", observation_scales)
 
     def stage(motion, observation):
         return log_likelihoods(config, key, scaled_noise(params, motion, observation),
                                controls, observations, initial_pose)
 
     motion_objective = stage(motion_scales, np.ones_like(motion_scales))
-    motion_scale = _best(motion_scales, motion_objective)
+    motion_scale = best_scale(motion_scales, motion_objective)
     observation_objective = stage(np.full_like(observation_scales, motion_scale),
                                   observation_scales)
-    observation_scale = _best(observation_scales, observation_objective)
+    observation_scale = best_scale(observation_scales, observation_objective)
     return scaled_noise(params, motion_scale, observation_scale), ScaleSearch(
         motion_scale, observation_scale, motion_scales, motion_objective, observation_scales,
         observation_objective)

@@ -50,7 +50,8 @@ Uncertainty: a group's std estimated from r_g degrees of freedom has a relative 
 error of about 1 / sqrt(2 r_g) (chi-square); ``CalibrationInfo.relative_std`` reports it with
 r_g taken as the group's sample count (an upper bound on r_g, so the interval is a lower bound).
 
-Cost: one filter run per iteration, plus the smoother (0.15-0.35 of a run per iteration on
+Cost: one filter run per iteration (plus the scale search: two vmapped calls over its grid and
+their compile), plus the smoother (0.15-0.35 of a run per iteration on
 MRCLAM robot 1 and on the simulated loop of ``benchmarks/calibration.py``), plus a few per cent
 for the rest. Between the filter runs the library's models run on the host in float64 on
 shapes fixed for the log (``host.in_float64``), and the noise fits in
@@ -74,14 +75,13 @@ from jaxslam.filter import run_filter
 from jaxslam.landmark_merge import merge_split_landmarks, relabel
 from jaxslam.motion import control_to_odometry
 from jaxslam.noise_scale import (DEFAULT_SCALES, MOTION_FIELDS, OBSERVATION_FIELDS, ScaleSearch,
-                                 search_noise_scales)
+                                 check_scales, search_noise_scales)
 from jaxslam.noise_fit import (MIN_MOVES, MIN_OBSERVATIONS, MIN_SIGHTINGS, STD_FLOOR,
                                motion_noise_update, observation_noise_update)
 from jaxslam.types import FilterConfig, Observations, Params, default_params
 
 START_DETECTION = 0.1  # the first iteration's detection probability (``starting_params``)
 TRUST_FACTOR = 3.0  # most factor a noise group's typical std may move in one iteration
-_SCALED_FIELDS = MOTION_FIELDS + OBSERVATION_FIELDS
 _GROUP_FIELDS = (("rot1_noise", "rot2_noise"), ("trans_noise",),
                  ("range_noise", "range_std_floor"), ("bearing_noise", "bearing_std_floor"))
 _trace_lineage = jax.jit(lineage.trace_lineage)
@@ -97,7 +97,7 @@ class CalibrationInfo(NamedTuple):
       smoother_cost: (iterations,) the smoother's final robust cost per residual row.
       typical_std: (iterations + 1, 4) typical std of the four noise groups (heading [rad],
         translation [m], range [m], bearing [rad]: the mean over the log's samples) before
-        each iteration and after the last.
+        each iteration and, last row, of the returned settings (after the scale search).
       values: the final settings, a dict of floats or tuples (the fitted ``Params`` fields).
       relative_std: dict group -> relative standard error of its std (module docstring).
       samples: dict group -> number of samples the fit used.
@@ -105,7 +105,7 @@ class CalibrationInfo(NamedTuple):
       verdict: one line in plain words.
       warnings: tuple of plain-word warnings (data too sparse, a group kept at its start).
       noise_scales: ``noise_scale.ScaleSearch`` of the likelihood search after EM
-        (``scale_search=True``), else None.
+        (``scale_search=True`` and something fitted), else None (the verdict says which).
     """
 
     iterations: int
@@ -350,6 +350,27 @@ def _progress_line(iteration: int, objective: float, typical, change: float) -> 
             f"{change:.1%})")
 
 
+def _scale_search(config, key, params, controls, observations, start, scales, last: _MStep,
+                  progress):
+    """``search_noise_scales`` over the groups EM fitted (an unfitted group's grid is (1,)):
+    (params, ``ScaleSearch``, a clause for the verdict)."""
+    unit = (1.0,)
+    params, found = search_noise_scales(
+        config, key, params, controls, observations, jnp.asarray(start, params.rot1_noise.dtype),
+        motion_scales=scales if last.motion_fitted else unit,
+        observation_scales=scales if last.observation_fitted else unit)
+    line = (f"likelihood over noise scales: motion {found.motion_scales.tolist()} -> "
+            f"{np.round(found.motion_objective, 1).tolist()}, observation "
+            f"{found.observation_scales.tolist()} -> "
+            f"{np.round(found.observation_objective, 1).tolist()}")
+    if progress is not None:
+        progress(f"calibration: {line}")
+    if found.motion_scale == 1.0 and found.observation_scale == 1.0:
+        return params, found, "; the likelihood kept EM's noise (noise scales x1)"
+    return params, found, (f"; noise scaled by the filter's likelihood: motion "
+                           f"x{found.motion_scale:g}, observation x{found.observation_scale:g}")
+
+
 def calibrate_params(config: FilterConfig, key, controls, observations: Observations,
                      initial_pose=None, params: Params | None = None, *,
                      motion_model: str | None = None, iterations: int = 6, tol: float = 0.05,
@@ -381,10 +402,12 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         noise x2) it broke two runs' calibration (final error 0.07 -> 1.47 m and
         0.04 -> 1.00 m), and on MRCLAM dataset 1 (5 robots, one run each) the median ratio of
         dead-reckoning to filter ATE was 1.63 with it against 2.19 without.
-      scale_search: after EM, multiply the motion and the observation noise by the
-        multipliers in ``scales`` of highest filter log marginal likelihood
-        (``noise_scale.search_noise_scales``, same key): EM on a poor association shrinks
-        the noise, the filter's likelihood does not.
+      scale_search: after EM, multiply the motion and then the observation noise by the
+        multipliers in ``scales`` (must contain 1) of highest filter log marginal likelihood
+        (``noise_scale.search_noise_scales``, EM's key; only the groups EM fitted): EM on a
+        poor association shrinks the noise. ``converged`` and ``relative_std`` still describe
+        EM's own estimate. Costs about 2-4 filter runs (two vmapped calls of len(scales)
+        candidates on the CPU) and one more compile.
       progress: optional callable(str) told of each iteration in one line.
     Returns:
       (params, info): the calibrated ``Params`` (dtype of ``params``) and ``CalibrationInfo``.
@@ -392,6 +415,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
       the groups it could not fit, and says so in ``info.warnings`` and ``info.verdict``.
     """
     log = _checked_log(controls, observations, initial_pose, iterations, tol)
+    scales = check_scales("scales", scales)
     motion_model = motion_model or config.motion_model
     params = starting_params(config) if params is None else params
     steps, dtype = len(log.controls), params.rot1_noise.dtype
@@ -444,18 +468,14 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                   f"likelihood of the {len(evaluated)} filter runs)")
     found = None
     if scale_search and last is not None:
-        params, found = search_noise_scales(config, key, params, controls, observations,
-                                            jnp.asarray(log.start, dtype), motion_scales=scales,
-                                            observation_scales=scales)
-        values.update({name: _plain(getattr(params, name)) for name in _SCALED_FIELDS})
-        chosen += (f"; noise scaled by the filter's likelihood: motion x{found.motion_scale:g},"
-                   f" observation x{found.observation_scale:g}")
-        if progress is not None:
-            progress(f"calibration: likelihood over noise scales {list(scales)}: motion "
-                     f"{np.round(found.motion_objective, 1).tolist()} -> x"
-                     f"{found.motion_scale:g}, observation "
-                     f"{np.round(found.observation_objective, 1).tolist()} -> x"
-                     f"{found.observation_scale:g}")
+        params, found, note = _scale_search(config, key, params, controls, observations,
+                                            log.start, scales, last, progress)
+        values.update({name: _plain(getattr(params, name)) for name in
+                       (MOTION_FIELDS if last.motion_fitted else ())
+                       + (OBSERVATION_FIELDS if last.observation_fitted else ())})
+        chosen += note
+    elif scale_search:
+        chosen += "; no noise-scale search (nothing was fitted)"
     typical.append(typical_stds(params, odometry, z_range))
     warnings += _fit_warnings(last, steps)
     verdict = ("converged" if converged else f"not converged after {done} iterations "

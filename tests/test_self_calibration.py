@@ -65,6 +65,9 @@ def test_recovers_the_noise_groups_within_stated_intervals():
     assert info.iterations >= 1 and info.objective.shape == (info.iterations,)
     assert info.typical_std.shape == (info.iterations + 1, 4)
     assert set(info.relative_std) == {"heading", "translation", "range", "bearing"}
+    # The stated intervals are EM's: on this known-association log the likelihood search
+    # must keep EM's noise (x1) for them to apply to the returned settings.
+    assert info.noise_scales.motion_scale == info.noise_scales.observation_scale == 1.0
 
 
 def test_calibration_moves_a_wrong_start_towards_the_truth():
@@ -345,7 +348,10 @@ def test_scale_search_multiplies_the_em_result_by_the_chosen_scales():
     found = info.noise_scales
     assert found.motion_scale in found.motion_scales
     assert found.observation_scale in found.observation_scales
-    assert f"motion x{found.motion_scale:g}" in info.verdict
+    if found.motion_scale == found.observation_scale == 1.0:
+        assert "kept EM's noise" in info.verdict
+    else:
+        assert f"motion x{found.motion_scale:g}" in info.verdict
     # Same key, same EM: the fields the search scales are EM's times the chosen factor
     # (float32 products: 1e-6 relative), every other field is EM's exactly.
     for names, scale in ((MOTION_FIELDS, found.motion_scale),
@@ -355,3 +361,19 @@ def test_scale_search_multiplies_the_em_result_by_the_chosen_scales():
                                        scale * np.asarray(getattr(plain, name)), rtol=1e-6)
     for name in ("max_range", "detection_probability", "association_gate"):
         np.testing.assert_array_equal(getattr(searched, name), getattr(plain, name))
+    for name, value in info.values.items():
+        np.testing.assert_allclose(np.asarray(value, np.float64),
+                                   np.asarray(getattr(searched, name), np.float64), rtol=1e-6)
+
+
+@pytest.mark.parametrize("bad", [(2.0, 4.0), (), (1.0, -2.0)])
+def test_bad_scales_fail_before_any_filter_run(bad, monkeypatch):
+    controls, obs, poses = _log()
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("the filter ran before the scales were checked")
+
+    monkeypatch.setattr(sc, "run_filter", no_run)
+    with pytest.raises(ValueError, match="scales must be a non-empty 1-D .* contains 1"):
+        sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0],
+                            scales=bad)
