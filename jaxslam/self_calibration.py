@@ -50,8 +50,8 @@ Uncertainty: a group's std estimated from r_g degrees of freedom has a relative 
 error of about 1 / sqrt(2 r_g) (chi-square); ``CalibrationInfo.relative_std`` reports it with
 r_g taken as the group's sample count (an upper bound on r_g, so the interval is a lower bound).
 
-Cost: one filter run per iteration (plus the scale search: two vmapped calls over its grid and
-their compile), plus the smoother (0.15-0.35 of a run per iteration on
+Cost: one filter run per iteration (plus the scale search's runs, up to 6 more with the default
+grid, on the same compiled filter), plus the smoother (0.15-0.35 of a run per iteration on
 MRCLAM robot 1 and on the simulated loop of ``benchmarks/calibration.py``), plus a few per cent
 for the rest. Between the filter runs the library's models run on the host in float64 on
 shapes fixed for the log (``host.in_float64``), and the noise fits in
@@ -351,14 +351,15 @@ def _progress_line(iteration: int, objective: float, typical, change: float) -> 
 
 
 def _scale_search(config, key, params, controls, observations, start, scales, last: _MStep,
-                  progress):
+                  progress, known_objective=None):
     """``search_noise_scales`` over the groups EM fitted (an unfitted group's grid is (1,)):
     (params, ``ScaleSearch``, a clause for the verdict)."""
     unit = (1.0,)
     params, found = search_noise_scales(
         config, key, params, controls, observations, jnp.asarray(start, params.rot1_noise.dtype),
         motion_scales=scales if last.motion_fitted else unit,
-        observation_scales=scales if last.observation_fitted else unit)
+        observation_scales=scales if last.observation_fitted else unit,
+        known_objective=known_objective)
     line = (f"likelihood over noise scales: motion {found.motion_scales.tolist()} -> "
             f"{np.round(found.motion_objective, 1).tolist()}, observation "
             f"{found.observation_scales.tolist()} -> "
@@ -406,8 +407,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         multipliers in ``scales`` (must contain 1) of highest filter log marginal likelihood
         (``noise_scale.search_noise_scales``, EM's key; only the groups EM fitted): EM on a
         poor association shrinks the noise. ``converged`` and ``relative_std`` still describe
-        EM's own estimate. Costs about 2-4 filter runs (two vmapped calls of len(scales)
-        candidates on the CPU) and one more compile.
+        EM's own estimate. Costs up to 2 len(scales) - 2 more filter runs (the settings EM
+        returned are not run again when EM did not converge).
       progress: optional callable(str) told of each iteration in one line.
     Returns:
       (params, info): the calibrated ``Params`` (dtype of ``params``) and ``CalibrationInfo``.
@@ -459,17 +460,18 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         if change < tol:
             converged = True
             break
-    chosen = ""
+    chosen, known_objective = "", None
     if not converged:
         best = _best_run(objective)
-        params = evaluated[best]
+        params, known_objective = evaluated[best], objective[best]
         values = {name: _plain(getattr(params, name)) for name in values}
         chosen = (f"; returned iteration {best + 1}'s settings (the highest log marginal "
                   f"likelihood of the {len(evaluated)} filter runs)")
     found = None
     if scale_search and last is not None:
         params, found, note = _scale_search(config, key, params, controls, observations,
-                                            log.start, scales, last, progress)
+                                            log.start, scales, last, progress,
+                                            known_objective)
         values.update({name: _plain(getattr(params, name)) for name in
                        (MOTION_FIELDS if last.motion_fitted else ())
                        + (OBSERVATION_FIELDS if last.observation_fitted else ())})

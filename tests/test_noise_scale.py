@@ -58,19 +58,33 @@ def test_scaled_noise_matches_numpy_for_scalars_and_batches():
                                float(params.range_std_floor), rtol=1e-7)
 
 
-def test_vmapped_likelihoods_equal_one_run_each():
+def test_search_scores_are_single_filter_runs_and_each_candidate_runs_once(monkeypatch):
     controls, obs, poses = _log()
-    key = jax.random.PRNGKey(3)
-    candidates = ns.scaled_noise(_true_params(), np.array([1.0, 2.0]), np.array([1.0, 4.0]))
-    batched = ns.log_likelihoods(CONFIG, key, candidates, controls, obs, poses[0])
-    single = [float(np.sum(run_filter(CONFIG, key, jax.tree.map(lambda a: a[i], candidates),
-                                      controls, obs, poses[0])[1].log_evidence))
-              for i in range(2)]
-    # The same float32 computation batched and one at a time: XLA may fuse and order the
-    # float32 sums differently (a few ulps a step over 120 steps); a flipped discrete choice
-    # (association, resampling) would move the sum by far more than 1e-4 relative.
-    np.testing.assert_allclose(batched, single, rtol=1e-4)
-    assert batched[0] != batched[1]
+    key, params = jax.random.PRNGKey(3), _true_params()
+    calls = []
+    original = ns.log_likelihood
+
+    def counted(config, key, candidate, *args):
+        calls.append(float(candidate.range_std_floor / params.range_std_floor))
+        return original(config, key, candidate, *args)
+
+    monkeypatch.setattr(ns, "log_likelihood", counted)
+    _, found = ns.search_noise_scales(CONFIG, key, params, controls, obs, poses[0],
+                                      motion_scales=(1.0, 2.0), observation_scales=(1.0, 4.0))
+    # 2 motion candidates, then 1 new observation candidate (its x1 is the motion choice).
+    assert len(calls) == 3
+    direct = float(np.sum(np.asarray(run_filter(
+        CONFIG, key, ns.scaled_noise(params, 1.0, 1.0), controls, obs, poses[0])[1]
+        .log_evidence)))
+    # The same compiled computation up to record_lineage (which only adds outputs): equal
+    # to float32 rounding of the sum (1e-6 relative).
+    np.testing.assert_allclose(found.motion_objective[0], direct, rtol=1e-6)
+    calls.clear()
+    _, again = ns.search_noise_scales(CONFIG, key, params, controls, obs, poses[0],
+                                      motion_scales=(1.0, 2.0), observation_scales=(1.0, 4.0),
+                                      known_objective=found.motion_objective[0])
+    assert len(calls) == 2  # the known x1 is not run again
+    chex.assert_trees_all_equal(again, found)
 
 
 def test_search_widens_a_noise_that_is_too_narrow():
