@@ -440,6 +440,7 @@ def test_calibrate_command_writes_params_that_run_reads(tmp_path, monkeypatch, c
     finally:
         _reset_cache_config()
     assert status == 0
+    assert "calibration: likelihood over noise scales" in capsys.readouterr().out
     params = pipeline.load_params(tmp_path / "p.toml")
     # The true range std is 5 cm at every distance (2-8 m here); the fit's std at 5 m is
     # within 30 % (about 400 associated observations and a two-term fit).
@@ -447,6 +448,22 @@ def test_calibrate_command_writes_params_that_run_reads(tmp_path, monkeypatch, c
     assert 0.035 <= std_5m <= 0.065
     assert cli.main(["calibrate", "--data", str(tmp_path / "missing.npz"), "--out",
                      str(tmp_path / "q.toml")]) == 2
+
+
+def test_calibrate_without_the_scale_search(tmp_path, monkeypatch, capsys):
+    from jaxslam.datasets.log_format import save_log
+
+    monkeypatch.setenv("JAXSLAM_CACHE_DIR", str(tmp_path / "cache"))
+    save_log(tmp_path / "noisy.npz", _noisy_log())
+    try:
+        status = cli.main(["calibrate", "--data", str(tmp_path / "noisy.npz"), "--out",
+                           str(tmp_path / "p.toml"), "--set", "filter.num_particles=16",
+                           "--set", "filter.max_landmarks=48", "--no-scale-search"])
+    finally:
+        _reset_cache_config()
+    out = capsys.readouterr().out
+    assert status == 0 and (tmp_path / "p.toml").is_file()
+    assert "likelihood over noise scales" not in out and "noise scale" not in out
 
 
 def test_params_file_errors(tmp_path):

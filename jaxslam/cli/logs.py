@@ -212,7 +212,8 @@ def _filter_log(args, log):
     study, filter_config, params, calibrate = _log_settings(args, log)
     run = pipeline.filter_log(log, filter_config, params, jax.random.PRNGKey(args.seed),
                               calibrate=calibrate, smooth=smooth, visit_gap=visit_gap,
-                              map_match_threshold=study.map_match_threshold, progress=print)
+                              map_match_threshold=study.map_match_threshold, progress=print,
+                              calibration_options=_calibration_options(args))
     est = run.estimate
     truth = np.zeros((0, 3)) if log.truth_pose is None else np.asarray(log.truth_pose)
     trees = np.zeros((0, 2)) if log.truth_landmarks is None else np.asarray(log.truth_landmarks)
@@ -224,6 +225,11 @@ def _filter_log(args, log):
     if run.smoothed_pose is not None:
         example["smoothed_pose"] = run.smoothed_pose
     return example, run
+
+
+def _calibration_options(args) -> dict:
+    """``calibrate_params`` keywords from the command line (``--no-scale-search``)."""
+    return {"scale_search": not getattr(args, "no_scale_search", False)}
 
 
 def cmd_calibrate(args) -> int:
@@ -238,7 +244,8 @@ def cmd_calibrate(args) -> int:
     _, filter_config, params, _ = _log_settings(args, log)
     params, info = calibrate_params(
         filter_config, jax.random.PRNGKey(args.seed), log.controls.astype("float32"),
-        log.observations(), log.initial_pose, params, progress=print)
+        log.observations(), log.initial_pose, params, progress=print,
+        **_calibration_options(args))
     _print_calibration(info)
     _print_warnings(info.warnings)
     saved = pipeline.save_params(args.out, params, comment=f"calibrated from {args.data} by "
