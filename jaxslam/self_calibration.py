@@ -44,14 +44,15 @@ Why this and not a likelihood search over a population of Params: the filter's m
 likelihood is a noisy, flat function of 9 motion and 4 sensor coefficients at the particle
 counts users run, while the smoother's residuals measure each noise group directly, with
 degrees of freedom in the thousands on a real log, and cost one filter run per iteration.
-Two multipliers of EM's result, on a 2x grid, are what the likelihood can pick reliably.
+The likelihood is only asked for two multipliers of EM's result on a 2x grid (how stable that
+choice is across keys was not measured).
 
 Uncertainty: a group's std estimated from r_g degrees of freedom has a relative standard
 error of about 1 / sqrt(2 r_g) (chi-square); ``CalibrationInfo.relative_std`` reports it with
 r_g taken as the group's sample count (an upper bound on r_g, so the interval is a lower bound).
 
-Cost: one filter run per iteration (plus the scale search's runs, up to 6 more with the default
-grid, on the same compiled filter), plus the smoother (0.15-0.35 of a run per iteration on
+Cost: one filter run per iteration (plus the scale search's runs on the same compiled filter:
+7 with the default grid, 6 when EM did not converge), plus the smoother (0.15-0.35 of a run per iteration on
 MRCLAM robot 1 and on the simulated loop of ``benchmarks/calibration.py``), plus a few per cent
 for the rest. Between the filter runs the library's models run on the host in float64 on
 shapes fixed for the log (``host.in_float64``), and the noise fits in
@@ -407,8 +408,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         multipliers in ``scales`` (must contain 1) of highest filter log marginal likelihood
         (``noise_scale.search_noise_scales``, EM's key; only the groups EM fitted): EM on a
         poor association shrinks the noise. ``converged`` and ``relative_std`` still describe
-        EM's own estimate. Costs up to 2 len(scales) - 2 more filter runs (the settings EM
-        returned are not run again when EM did not converge).
+        EM's own estimate. Costs 2 len(scales) - 1 more filter runs (one fewer when EM did
+        not converge: its best run is reused).
       progress: optional callable(str) told of each iteration in one line.
     Returns:
       (params, info): the calibrated ``Params`` (dtype of ``params``) and ``CalibrationInfo``.
@@ -430,7 +431,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                                        (warning,))
     objective, costs, typical, evaluated, warnings = [], [], [], [], []
     samples, values = {}, {}
-    converged, last = False, None
+    converged, last, m_steps = False, None, []
     controls = jnp.asarray(log.controls, dtype)
     for done in range(1, iterations + 1):
         odometry = np.asarray(control_to_odometry(controls, params, motion_model), np.float64)
@@ -446,6 +447,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
             warnings.append(step)
             break
         last = step
+        m_steps.append(step)  # m_steps[i] made the settings of filter run i + 1
         costs.append(step.cost)
         if step.motion_fitted:
             samples["heading"] = samples["translation"] = steps
@@ -460,21 +462,23 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         if change < tol:
             converged = True
             break
-    chosen, known_objective = "", None
+    chosen, known_objective, source = "", None, last  # source: the M-step behind ``params``
     if not converged:
         best = _best_run(objective)
+        source = m_steps[best - 1] if 1 <= best <= len(m_steps) else None
         params, known_objective = evaluated[best], objective[best]
         values = {name: _plain(getattr(params, name)) for name in values}
         chosen = (f"; returned iteration {best + 1}'s settings (the highest log marginal "
                   f"likelihood of the {len(evaluated)} filter runs)")
     found = None
-    if scale_search and last is not None:
+    if scale_search and source is not None and (source.motion_fitted
+                                                 or source.observation_fitted):
         params, found, note = _scale_search(config, key, params, controls, observations,
-                                            log.start, scales, last, progress,
+                                            log.start, scales, source, progress,
                                             known_objective)
         values.update({name: _plain(getattr(params, name)) for name in
-                       (MOTION_FIELDS if last.motion_fitted else ())
-                       + (OBSERVATION_FIELDS if last.observation_fitted else ())})
+                       (MOTION_FIELDS if source.motion_fitted else ())
+                       + (OBSERVATION_FIELDS if source.observation_fitted else ())})
         chosen += note
     elif scale_search:
         chosen += "; no noise-scale search (nothing was fitted)"

@@ -464,6 +464,10 @@ def test_calibrate_without_the_scale_search(tmp_path, monkeypatch, capsys):
     out = capsys.readouterr().out
     assert status == 0 and (tmp_path / "p.toml").is_file()
     assert "likelihood over noise scales" not in out and "noise scale" not in out
+    # The same flag on `run --data`: calibrated, no search.
+    status, out, _ = _run_noisy(tmp_path, monkeypatch, capsys, "--no-scale-search")
+    assert status == 0 and "calibration:" in out
+    assert "likelihood over noise scales" not in out and "noise scale" not in out
 
 
 def test_params_file_errors(tmp_path):
