@@ -74,7 +74,11 @@ def test_loop_mismatch_is_the_frame_shift():
     true_id = np.where(seen, 4, -1)
     shifted = truth.copy()
     shifted[5:, :2] += [0.3, -0.4]
-    for history, want in ((truth, 0.0), (shifted, 0.5)):
+    # Only the return pose itself shifted: the prediction comes from the exact pose[7], so
+    # the mismatch is 0 (reading pose[8] instead of predicting would give 0.5).
+    corrected_at_return = truth.copy()
+    corrected_at_return[8, :2] += [0.3, -0.4]
+    for history, want in ((truth, 0.0), (shifted, 0.5), (corrected_at_return, 0.0)):
         mismatch, back = loop_mismatch(history, odometry, z, true_id, seen, np.array([4]))
         np.testing.assert_allclose(mismatch, [want], atol=1e-12)
         np.testing.assert_array_equal(back, [8])
@@ -120,9 +124,8 @@ def run_tiny(out, *extra):
 
 
 def test_script_end_to_end(tmp_path):
-    """Tables and per-log arrays are written, one entry a log, errors finite and >= 0, and
-    every oracle repair is at most as split as the own association (under the test suite's
-    rank-promotion errors)."""
+    """Tables and per-log arrays are written, one entry a log, errors finite and >= 0 (under
+    the test suite's rank-promotion errors)."""
     text, table = run_tiny(tmp_path / "tiny")
     assert "| online (weighted mean) | 2 |" in text
     for name in ("online", "best", "smoothed", "oracle_loop", "purity", "split_trees",
