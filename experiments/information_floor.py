@@ -321,13 +321,18 @@ def main(argv=None):
                       + " | ".join(f"{name} > 1 m" for name in columns) + " |\n|---|---|"
                       + "---|" * len(columns) + "\n"
                       + "\n".join(sparse_rows(out["sparsest"], columns)))
-    command = "python experiments/information_floor.py " + " ".join(
-        sys.argv[1:] if argv is None else argv)
-    text = f"`{command.strip()}`\n\n" + "\n\n".join(tables) + "\n"
+    write_outputs("information_floor.py", argv, tables, out, args.out)
+
+
+def write_outputs(script: str, argv, sections: list[str], arrays: dict, out: str) -> None:
+    """Print the command line and the markdown ``sections``; write them to ``out``.md and the
+    per-log ``arrays`` to ``out``.npz (folders created)."""
+    command = f"python experiments/{script} " + " ".join(sys.argv[1:] if argv is None else argv)
+    text = f"`{command.strip()}`\n\n" + "\n\n".join(sections) + "\n"
     print(text)
-    path = pathlib.Path(args.out)
+    path = pathlib.Path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path.with_suffix(".npz"), **out)
+    np.savez(path.with_suffix(".npz"), **arrays)
     path.with_suffix(".md").write_text(text)
     print(f"written to {path.with_suffix('.npz')} and {path.with_suffix('.md')}")
 

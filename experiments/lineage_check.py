@@ -37,8 +37,6 @@ the filter's association has to bridge there.
 from __future__ import annotations
 
 import argparse
-import pathlib
-import sys
 import time
 from typing import NamedTuple
 
@@ -47,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.information_floor import (PURE_GAUSSIAN, dead_reckoning, filter_errors,
-                                           rate_row, sparse_rows)
+                                           rate_row, sparse_rows, write_outputs)
 from experiments.mixture_regime import regime_params
 from experiments.proposal_study import (longest_sparse_stretch, make_logs, proposal_settings,
                                         wilson)
@@ -528,15 +526,7 @@ def main(argv=None):
     table.update(online=online, sparsest=longest_sparse_stretch(obs.valid))
     table.update({f"loop_{name}": np.concatenate([loop[name] for loop in per_loop])
                   for name in per_loop[0]})
-    command = "python experiments/lineage_check.py " + " ".join(
-        sys.argv[1:] if argv is None else argv)
-    text = f"`{command.strip()}`\n\n" + "\n\n".join([" ".join(notes)] + tables(table)) + "\n"
-    print(text)
-    path = pathlib.Path(args.out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path.with_suffix(".npz"), **table)
-    path.with_suffix(".md").write_text(text)
-    print(f"written to {path.with_suffix('.npz')} and {path.with_suffix('.md')}")
+    write_outputs("lineage_check.py", argv, [" ".join(notes)] + tables(table), table, args.out)
 
 
 if __name__ == "__main__":
