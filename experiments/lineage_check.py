@@ -454,8 +454,8 @@ def tables(table: dict) -> list[str]:
     return out
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def add_regime_arguments(parser: argparse.ArgumentParser) -> None:
+    """The logs' and the filter's options (``regime_histories``)."""
     parser.add_argument("--runs", type=int, default=1000)
     parser.add_argument("--forests", type=int, default=50)
     parser.add_argument("--seed", type=int, default=700)
@@ -471,9 +471,13 @@ def main(argv=None):
     parser.add_argument("--check", action="store_true",
                         help="also run information_floor.filter_errors (no lineage) and count "
                              "the logs whose online final error it reproduces bit for bit")
-    parser.add_argument("--out", default="results/lineage_check/check",
-                        help="prefix of the .npz (per-log arrays) and .md (tables)")
-    args = parser.parse_args(argv)
+
+
+def regime_histories(args: argparse.Namespace):
+    """information_floor.main's logs, keys and params (so its filter column is reproduced) and
+    the filter's lineage runs on them. Returns (first: the logs used, controls (R, T, 3), obs
+    leaves (R, T, K), truth (R, T+1, 3), params, online final error (R,), histories: the best
+    particle's ``LineagePath`` per log (leaves (R, T, ...)), notes: list of str)."""
     if args.runs % args.forests:
         raise SystemExit("--runs must be a multiple of --forests")
     first = args.runs if args.first is None else args.first
@@ -483,7 +487,6 @@ def main(argv=None):
     chunk = min(args.chunk, first)
     if first % chunk:
         raise SystemExit(f"{first} logs must be a multiple of the chunk {chunk}")
-    # information_floor.main's keys, logs and params, so its filter column is reproduced.
     truth_params = regime_params(args.odometry, "lidar")
     key = jax.random.fold_in(jax.random.PRNGKey(args.seed), int(1000 * args.wobble
                                                                 + args.odometry))
@@ -511,6 +514,16 @@ def main(argv=None):
                      f"reproduces the online final error bit for bit in {same} / {first} logs "
                      f"(largest difference {np.max(np.abs(reference - online)):.3g} m).")
         print(notes[-1], flush=True)
+    return first, controls, obs, truth, params, online, histories, notes
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_regime_arguments(parser)
+    parser.add_argument("--out", default="results/lineage_check/check",
+                        help="prefix of the .npz (per-log arrays) and .md (tables)")
+    args = parser.parse_args(argv)
+    first, controls, obs, truth, params, online, histories, notes = regime_histories(args)
     tick, per_log, per_loop = time.perf_counter(), [], []
     for r in range(first):
         loops, log = check_log(jax.tree.map(lambda a: a[r], histories), controls[r],

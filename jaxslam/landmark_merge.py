@@ -103,9 +103,18 @@ def merge_split_landmarks(positions, obs_step, obs_landmark,
                  & observed[:, None] & observed[None])
     a, b = np.nonzero(candidate)
     order = np.argsort(distance[a, b], kind="stable")
+    return join_groups(np.stack([a[order], b[order]], -1), together)
+
+
+def join_groups(pairs, together) -> np.ndarray:
+    """Relabelling (L,) that joins the landmark pairs ``pairs`` (n, 2), taken in order,
+    single linkage with union-find, skipping a pair whose groups hold two landmarks seen
+    together (``together`` (L, L) bool, ``covisible_pairs``). Labels 0..G-1 are numbered in
+    order of each group's first member (with no join, arange(L))."""
+    count = len(together)
     parent = np.arange(count)
-    group_together = together.copy()  # rows/columns of roots: co-visible with the group
-    for i, j in zip(a[order], b[order]):
+    group_together = np.array(together, bool)  # rows/columns of roots: co-visible with the group
+    for i, j in np.asarray(pairs, np.int64).reshape(-1, 2):
         ri, rj = _find(parent, i), _find(parent, j)
         if ri == rj or group_together[ri, rj]:
             continue
@@ -113,7 +122,7 @@ def merge_split_landmarks(positions, obs_step, obs_landmark,
         parent[other] = root
         group_together[root] |= group_together[other]
         group_together[:, root] |= group_together[:, other]
-    roots = np.array([_find(parent, i) for i in range(count)])
+    roots = np.array([_find(parent, i) for i in range(count)], np.int64)
     _, labels = np.unique(roots, return_inverse=True)
     # Number groups by first member: np.unique sorts roots, and each root is its group's
     # smallest member, so the order is already by first member.
