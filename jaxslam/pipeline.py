@@ -7,7 +7,9 @@
     2. ``calibrate_params`` from the log alone, unless ``calibrate=False``;
     3. ``run_filter`` with the lineage recorded, so the best particle's data association is
        known (for the smoother and for the warnings);
-    4. optionally ``smoothing.smooth_lineage`` of that particle's history;
+    4. optionally ``smoothing.smooth_lineage`` of that particle's history, or with
+       ``close_loops`` ``loop_closure.close_loops`` from it (loops the filter missed closed
+       by registration, each closure tested by the smoother's cost rise);
     5. metrics against the log's ground truth when it has any (truth only scores);
     6. ``run_warnings``: plain-word warnings about a run that went wrong.
 
@@ -137,7 +139,7 @@ def _truth_metrics(log, mean_pose, smoothed, est, map_match_threshold: float) ->
 
 def filter_log(log, config: FilterConfig, params: Params | None = None, key=None, *,
                calibrate: bool = True, smooth: bool = False, visit_gap: int | None = None,
-               map_match_threshold: float = 1.0, calibration_options: dict | None = None,
+               close_loops: bool = False, map_match_threshold: float = 1.0, calibration_options: dict | None = None,
                progress: Callable[[str], None] | None = None) -> LogRun:
     """Calibrate (by default), filter and evaluate one ``RobotLog`` (module docstring).
 
@@ -149,12 +151,18 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
       key: PRNG key (default ``PRNGKey(0)``), used by the calibration and the final run.
       calibrate: estimate the settings from the log first (``calibrate_params``).
       smooth / visit_gap: smooth the best particle's history (``smoothing.smooth_lineage``).
+      close_loops: with ``smooth``, close the loops the filter missed before the final solve
+        (``loop_closure.close_loops``; not with ``visit_gap``); metrics gain
+        ``loop_closures`` and ``landmarks_joined``.
       map_match_threshold: [m] landmark-to-tree distance of a match in the map metrics.
       calibration_options: keyword arguments for ``calibrate_params``.
       progress: optional callable(str) told of each stage.
     """
     import dataclasses
 
+    if close_loops and (not smooth or visit_gap is not None):
+        raise ValueError("close_loops needs smooth=True and no visit_gap (visits are the "
+                         "smoother's own soft loop closures; choose one)")
     key = jax.random.PRNGKey(0) if key is None else key
     obs = log.observations()
     from jaxslam.validation import observation_units_warnings  # units guard (issue 18)
@@ -175,30 +183,51 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
                               jnp.asarray(start, jnp.float32), record_lineage=True)
     est = estimate(final)
     mean_pose = np.asarray(trace.mean_pose, np.float64)
-    smoothed = None
+    smoothed, closed = None, {}
     history = lineage.trace_lineage(trace.lineage, est.best_particle)  # traced once
     if smooth:
-        from jaxslam import smoothing
-        from jaxslam.motion import control_to_odometry
-
-        odometry = control_to_odometry(controls, params, log.motion_model)
-        smoothed = smoothing.smooth_lineage(np.asarray(start, np.float64),
-                                            jax.tree.map(np.asarray, history),
-                                            np.asarray(odometry), np.asarray(obs.z), params,
-                                            visit_gap=visit_gap).path
+        smoothed, closed = _smoothed_path(history, controls, obs, start, params,
+                                          log.motion_model, visit_gap, close_loops)
     valid = np.asarray(obs.valid)
     share, births = history_counts(history, valid)
     values = {"steps": log.num_steps, "num_landmarks": int(np.sum(np.asarray(est.active))),
               "valid_observations": int(valid.sum()),
               "invalid_observations": int(np.sum(np.asarray(trace.num_invalid_obs))),
               "unmatched_share": share, "landmarks_started": births,
-              "dropped_births": int(np.sum(np.asarray(trace.num_dropped_births)))}
+              "dropped_births": int(np.sum(np.asarray(trace.num_dropped_births))), **closed}
     values.update(_truth_metrics(log, mean_pose, smoothed, est, map_match_threshold))
     warnings = run_warnings(trace, valid, share, config.num_particles, births)
     if calibration is not None:
         warnings = list(calibration.warnings) + warnings
     warnings = units + list(warnings)
     return LogRun(params, calibration, est, trace, mean_pose, smoothed, values, tuple(warnings))
+
+
+def _smoothed_path(history, controls, obs, start, params: Params, motion_model: str,
+                   visit_gap: int | None, close_loops: bool):
+    """The smoothed path (T, 3) of the best particle's ``history`` and, with ``close_loops``,
+    the closure counts {loop_closures, landmarks_joined} (``filter_log``'s step 4)."""
+    from jaxslam import loop_closure, smoothing
+    from jaxslam.motion import control_to_odometry
+
+    history = jax.tree.map(np.asarray, history)
+    odometry = np.asarray(control_to_odometry(controls, params, motion_model), np.float64)
+    start = np.asarray(start, np.float64)
+    if not close_loops:
+        return smoothing.smooth_lineage(start, history, odometry, np.asarray(obs.z), params,
+                                        visit_gap=visit_gap).path, {}
+    valid = np.asarray(obs.valid, bool)
+    ids, _ = lineage.landmark_identities(history.match, history.birth_slot)
+    ids = np.where(valid, np.asarray(ids), -1)
+    z = np.where(valid[..., None], np.asarray(obs.z, np.float64), 0.0)
+
+    def solve(path, landmark_of_obs, iterations: int = 30):
+        return smoothing.smooth_path(start, path, odometry, z, landmark_of_obs, params,
+                                     iterations=iterations)
+
+    smoothed, closures = loop_closure.close_loops(solve, history.pose, ids)
+    return smoothed.path, {"loop_closures": len(closures),
+                           "landmarks_joined": int(sum(len(c.pairs) for c in closures))}
 
 
 def params_to_dict(params: Params) -> dict:

@@ -269,6 +269,24 @@ def test_run_on_a_log_with_visit_links(tmp_path, monkeypatch, capsys):
     assert "at least 1 step" in capsys.readouterr().err
 
 
+def test_run_on_a_log_with_loop_closure(tmp_path, monkeypatch, capsys):
+    status, values = _run_on_straight_log(tmp_path, monkeypatch, capsys, "--smooth",
+                                          "--close-loops", "--no-calibrate")
+    assert status == 0
+    # A straight drive never returns: no closure may be made, and the smoothed history stays
+    # within the same few cm of the truth as without loop closure.
+    assert float(values["loop_closures"]) == 0 and float(values["landmarks_joined"]) == 0
+    assert float(values["smoothed_ate_rmse"]) < 0.2
+    log = str(tmp_path / "log.npz")
+    assert cli.main(["run", "--data", log, "--close-loops"]) == 2
+    assert "needs --smooth" in capsys.readouterr().err
+    assert cli.main(["run", "--data", log, "--smooth", "--close-loops", "--visit-gap",
+                     "3"]) == 2
+    assert "choose one" in capsys.readouterr().err
+    assert cli.main(["run", "--close-loops"]) == 2
+    assert "--data" in capsys.readouterr().err
+
+
 def test_run_on_a_log_with_trunk_radii(tmp_path, monkeypatch, capsys):
     # docs/log_format.md: a log's obs_radius joins association when params.radius_noise is
     # set. The setting must reach the filter, and with radii that agree (each tree its own

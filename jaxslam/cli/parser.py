@@ -72,6 +72,10 @@ def _add_run(sub) -> None:
     run.add_argument("--smooth", action="store_true",
                      help="with --data: also smooth the best particle's history (its "
                           "associations fixed; jaxslam.smoothing) and report its errors")
+    run.add_argument("--close-loops", action="store_true",
+                     help="with --smooth: close the loops the filter missed (register the "
+                          "trees seen on a return onto the old landmarks, keep a closure only "
+                          "if the smoother's cost accepts it; jaxslam.loop_closure)")
     run.add_argument("--visit-gap", type=int, default=None, metavar="STEPS",
                      help="with --smooth: split each landmark into visits separated by more "
                           "than STEPS steps, tied by robust links, so the smoother can drop "
