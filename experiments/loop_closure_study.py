@@ -37,14 +37,32 @@ from experiments.information_floor import PURE_GAUSSIAN, rate_row, write_outputs
 from experiments.lineage_check import (add_regime_arguments, association_quality,
                                        position_error, regime_histories)
 from jaxslam.lineage import LineagePath, landmark_identities
-from jaxslam.loop_closure import close_loops
+from jaxslam.loop_closure import MAX_RISE_PER_DOF, close_loops
 from jaxslam.smoothing import smooth_path
 
 
-def close_log(history: LineagePath, controls, obs, truth, params, iterations: int) -> dict:
-    """Per-log numbers: own-association MAP and closed MAP final errors [m], closures made,
-    the closed association's quality fields (prefixed ``closed_``) and the seconds taken.
-    history leaves (T, ...), controls (T, 3), obs leaves (T, K), truth (T+1, 3)."""
+def majority_tree(landmark_of_obs, true_id, valid) -> np.ndarray:
+    """(L,) the true tree most of each landmark's valid observations belong to (ties: the
+    lower id; -1 for a landmark with none). landmark_of_obs, true_id, valid (T, K)."""
+    landmark_of_obs = np.asarray(landmark_of_obs, np.int64)
+    used = np.asarray(valid, bool) & (landmark_of_obs >= 0) & (np.asarray(true_id) >= 0)
+    count = int(landmark_of_obs.max()) + 1 if landmark_of_obs.size else 0
+    out = np.full(count, -1, np.int64)
+    for landmark in np.unique(landmark_of_obs[used]):
+        out[landmark] = np.argmax(np.bincount(np.asarray(true_id)[used & (landmark_of_obs
+                                                                           == landmark)]))
+    return out
+
+
+def close_log(history: LineagePath, controls, obs, truth, params, iterations: int):
+    """Per-log numbers and per-tested-join numbers of one log.
+
+    Returns (log, joins): log: own-association MAP and closed MAP final errors [m], closures
+    made, landmarks joined, the closed association's quality fields (prefixed ``closed_``)
+    and the seconds taken; joins: per join ``close_loops`` tested, kind (1 closure, 0 merge),
+    rise per degree of freedom, accepted, and true (every proposed pair one tree: scored
+    with the simulator's trees). history leaves (T, ...), controls (T, 3), obs leaves
+    (T, K), truth (T+1, 3)."""
     tick = time.perf_counter()
     valid = np.asarray(obs.valid, bool)
     ids, _ = landmark_identities(np.asarray(history.match), np.asarray(history.birth_slot))
@@ -55,13 +73,37 @@ def close_log(history: LineagePath, controls, obs, truth, params, iterations: in
     smooth = (lambda path, landmark_of_obs, steps=iterations:
               solve(path=path, landmark_of_obs=landmark_of_obs, iterations=steps))
     own = smooth(np.asarray(history.pose, np.float64), ids)
-    closed, closures = close_loops(smooth, history.pose, ids)
-    quality = association_quality(closed.landmark_of_obs, obs.landmark_id, valid)
-    return dict({f"closed_{k}": v for k, v in quality._asdict().items()},
-                own=float(position_error(own.path[-1], truth[-1])),
-                closed=float(position_error(closed.path[-1], truth[-1])),
-                closures=len(closures), closed_pairs=sum(len(c.pairs) for c in closures),
-                seconds=time.perf_counter() - tick)
+    result = close_loops(smooth, history.pose, ids)
+    quality = association_quality(result.smoothed.landmark_of_obs, obs.landmark_id, valid)
+    joins = {"kind": [], "rise_per_dof": [], "accepted": [], "true": []}
+    for join in result.tested:
+        tree = majority_tree(join.landmark_of_obs, obs.landmark_id, valid)
+        joins["kind"].append(int(join.kind == "closure"))
+        joins["rise_per_dof"].append(join.rise_per_dof)
+        joins["accepted"].append(join.accepted)
+        joins["true"].append(bool(np.all(tree[join.pairs[:, 0]] == tree[join.pairs[:, 1]])))
+    log = dict({f"closed_{k}": v for k, v in quality._asdict().items()},
+               own=float(position_error(own.path[-1], truth[-1])),
+               closed=float(position_error(result.smoothed.path[-1], truth[-1])),
+               closures=len(result.closures), landmarks_joined=result.landmarks_joined,
+               seconds=time.perf_counter() - tick)
+    return log, joins
+
+
+def join_table(table: dict) -> str:
+    """Markdown: the tested joins' cost rise per degree of freedom, by kind and by truth."""
+    rows = []
+    for kind, label in ((1, "closure (registration)"), (0, "merge (landmark_merge set)")):
+        for truth, name in ((True, "true"), (False, "false (a pair of two trees)")):
+            sel = (table["join_kind"] == kind) & (table["join_true"] == truth)
+            rise = table["join_rise_per_dof"][sel]
+            accepted = int(np.sum(table["join_accepted"][sel]))
+            rows.append(f"| {label} | {name} | {rise.size} | {accepted} | " + (
+                f"{np.min(rise):.3g} / {np.median(rise):.3g} / {np.max(rise):.3g}"
+                if rise.size else "") + " |")
+    return ("| join | scored | tested | accepted | cost rise per degree of freedom "
+            "min / median / max (limit " f"{MAX_RISE_PER_DOF:g}) |\n|---|---|---|---|---|\n"
+            + "\n".join(rows))
 
 
 def tables(table: dict) -> list[str]:
@@ -82,8 +124,8 @@ def tables(table: dict) -> list[str]:
         f"{np.median(ratio):.2f} (largest {np.max(ratio):.2f}); logs with every loop tree "
         f"re-identified {int(np.sum(table['closed_loop_closed_trees'] == table['closed_loop_trees']))}"
         f" / {runs}. Closures made: {int(np.sum(table['closures']))} in "
-        f"{int(np.sum(table['closures'] > 0))} logs ({int(np.sum(table['closed_pairs']))} "
-        f"landmark pairs joined). Host time per log median {np.median(table['seconds']):.1f} s "
+        f"{int(np.sum(table['closures'] > 0))} logs; landmarks removed by joins "
+        f"{int(np.sum(table['landmarks_joined']))}. Host time per log median {np.median(table['seconds']):.1f} s "
         f"(largest {np.max(table['seconds']):.1f} s).")
     diverged = table["online"] > 1
     rescued = diverged & (table["closed"] <= 1)
@@ -95,6 +137,7 @@ def tables(table: dict) -> list[str]:
                f"of which {int(np.sum((table['closed'] > 1) & impure))} with a false join and "
                f"{int(np.sum((table['closed'] > 1) & (table['closed_loop_closed_trees'] < table['closed_loop_trees'])))}"
                f" with a loop tree still not re-identified.")
+    out.append(join_table(table))
     return out
 
 
@@ -105,16 +148,24 @@ def main(argv=None):
                         help="prefix of the .npz (per-log arrays) and .md (tables)")
     args = parser.parse_args(argv)
     first, controls, obs, truth, params, online, histories, notes = regime_histories(args)
-    per_log = []
+    per_log, joins = [], {name: [] for name in ("kind", "rise_per_dof", "accepted", "true",
+                                                "log")}
     for r in range(first):
-        per_log.append(close_log(jax.tree.map(lambda a: a[r], histories), controls[r],
-                                 jax.tree.map(lambda a: a[r], obs),
-                                 np.asarray(truth[r], np.float64), params, args.iterations))
+        log, tested = close_log(jax.tree.map(lambda a: a[r], histories), controls[r],
+                                jax.tree.map(lambda a: a[r], obs),
+                                np.asarray(truth[r], np.float64), params, args.iterations)
+        per_log.append(log)
+        for name, values in dict(tested, log=[r] * len(tested["kind"])).items():
+            joins[name].extend(values)
         if (r + 1) % 25 == 0:
             print(f"{r + 1} logs closed, {sum(log['seconds'] for log in per_log):.0f} s",
                   flush=True)
     table = {name: np.asarray([log[name] for log in per_log]) for name in per_log[0]}
     table["online"] = online
+    table.update({f"join_{name}": np.asarray(values, float if name == "rise_per_dof"
+                                             else np.int64 if name in ("kind", "log")
+                                             else bool)
+                  for name, values in joins.items()})
     write_outputs("loop_closure_study.py", argv, [" ".join(notes)] + tables(table), table,
                   args.out)
 

@@ -11,18 +11,19 @@ old pieces by one rigid transform. This is the geometric verification of landmar
 loop closure (the consensus of correspondences under one rigid transform, as in random
 sample consensus: Fischler and Bolles, "Random sample consensus: a paradigm for model
 fitting with applications to image analysis and automated cartography"), applied to the
-smoothed map of the filter's own association; the smoother (Thrun et al., Probabilistic
-Robotics, ch. 11, GraphSLAM) then re-solves with the closure, which pulls the loop shut.
+smoothed map of the filter's own association; the smoother (Thrun, Burgard and Fox,
+Probabilistic Robotics, ch. 11, GraphSLAM) then re-solves with the closure, which pulls the
+loop shut.
 
-Criterion (``find_revisit``). A landmark a is OLDER than b when a's last sighting precedes
+Criterion (``find_revisits``). A landmark a is OLDER than b when a's last sighting precedes
 b's first (so they were never seen together and b could be a's return). A hypothesis pairs
 two newer landmarks b1, b2 seen together with two older ones a1, a2 seen together, a_i older
 than b_i, whose distances agree: | |m_b1 - m_b2| - |m_a1 - m_a2| | < r. It fixes the rigid
 transform (R, t) taking b1, b2 onto a1, a2 (rotation of b2 - b1 onto a2 - a1, centroids
 matched). Its GROUP is b1, b2 and every landmark seen together with b1 or b2; a group member
 g is an inlier when R m_g + t lies within r of a landmark older than g. Candidates are
-ranked by their inliers (counted as distinct members matched to distinct older landmarks;
-most first, then the smallest summed distance) and need ``min_inliers``. The radius is
+ranked by the distinct older landmarks their group lands on (most first, then the smallest
+summed distance) and need ``min_inliers`` of them. The radius is
 r = f d_min with f = 1/2, the same radius and argument as ``landmark_merge``: within d_min / 2
 of a tree, that tree is the nearest. With the default ``min_inliers`` = 3, one tree beyond the
 two that define the transform must land on an old tree. That alone is weak evidence (a
@@ -53,7 +54,9 @@ from jaxslam.landmark_merge import (covisible_distance, covisible_pairs, join_gr
 class Closure(NamedTuple):
     """One registered revisit.
 
-    pairs: (n, 2) int (older, newer) landmark ids joined; angle: rotation [rad] and
+    pairs: (n, 2) int (older, newer) landmark ids proposed for joining, in the ids of the map
+    it was found on (``join_groups`` skips a pair whose groups were seen together); angle:
+    rotation [rad] and
     translation (2,) [m] of the transform taking the newer group onto the older landmarks;
     hypotheses: how many hypotheses were scored.
     """
@@ -80,11 +83,12 @@ def rigid_from_pairs(source, target):
 
     R rotates source[1] - source[0] onto the direction of target[1] - target[0]; t matches the
     centroids: t = mean(target) - R mean(source). source, target (H, 2, 2) [m]. Returns
-    angle (H,) [rad] and t (H, 2) [m].
+    angle (H,) [rad] in (-pi, pi] and t (H, 2) [m].
     """
     source, target = np.asarray(source, np.float64), np.asarray(target, np.float64)
     ds, dt = source[:, 1] - source[:, 0], target[:, 1] - target[:, 0]
-    angle = np.arctan2(dt[:, 1], dt[:, 0]) - np.arctan2(ds[:, 1], ds[:, 0])
+    angle = np.angle(np.exp(1j * (np.arctan2(dt[:, 1], dt[:, 0])
+                                  - np.arctan2(ds[:, 1], ds[:, 0]))))
     return angle, target.mean(1) - rotate(source.mean(1), angle)
 
 
@@ -96,46 +100,69 @@ def rotate(points, angle):
 
 
 def _hypotheses(positions, together, older, radius):
-    """(H, 2) newer and (H, 2) older landmark ids of the module docstring's hypotheses."""
+    """(H, 2) newer and (H, 2) older landmark ids of the module docstring's hypotheses.
+
+    The older pairs are sorted by length, so each newer pair finds the ones within
+    ``radius`` of its length by bisection: memory O(H + pairs), not (pairs, pairs)."""
     b1, b2 = np.nonzero(np.triu(together, 1))
     a1, a2 = np.nonzero(together)  # ordered: both orientations of each older pair
     length = lambda i, j: np.linalg.norm(positions[i] - positions[j], axis=-1)
-    fits = np.abs(length(b1, b2)[:, None] - length(a1, a2)[None]) < radius
-    fits &= older[a1[None], b1[:, None]] & older[a2[None], b2[:, None]]
-    n, o = np.nonzero(fits)
+    order = np.argsort(length(a1, a2), kind="stable")
+    a1, a2 = a1[order], a2[order]
+    sorted_length = length(a1, a2)
+    new_length = length(b1, b2)
+    lo = np.searchsorted(sorted_length, new_length - radius, side="right")
+    hi = np.searchsorted(sorted_length, new_length + radius, side="left")
+    n = np.repeat(np.arange(len(b1)), hi - lo)
+    o = np.arange(n.size) - np.repeat(np.cumsum(hi - lo) - (hi - lo), hi - lo) + lo[n]
+    keep = older[a1[o], b1[n]] & older[a2[o], b2[n]]
+    n, o = n[keep], o[keep]
     return np.stack([b1[n], b2[n]], -1), np.stack([a1[o], a2[o]], -1)
 
 
 def _inliers(positions, together, older, radius, newer_pair, older_pair):
-    """Per hypothesis: distinct inliers (H,), matches (H, L) (older id per group member, -1:
-    none), summed inlier distance (H,) [m], angle (H,) and translation (H, 2)."""
+    """Per hypothesis (H of them, groups padded to G members): distinct older landmarks hit
+    (H,), the group's members (H, G) (-1: padding), the older landmark each member lands on
+    (H, G) (-1: none), summed inlier distance (H,) [m], angle (H,) and translation (H, 2).
+    Memory (H, G, L) floats."""
     angle, shift = rigid_from_pairs(positions[newer_pair], positions[older_pair])
-    group = together[newer_pair[:, 0]] | together[newer_pair[:, 1]]  # (H, L)
-    group[np.arange(len(group))[:, None], newer_pair] = True
-    moved = rotate(positions[None], angle[:, None]) + shift[:, None]  # (H, L, 2)
-    distance = np.linalg.norm(moved[:, :, None] - positions[None, None], axis=-1)  # (H, L, L)
-    distance = np.where(older.T[None] & group[:, :, None], distance, np.inf)
+    in_group = together[newer_pair[:, 0]] | together[newer_pair[:, 1]]  # (H, L)
+    in_group[np.arange(len(in_group))[:, None], newer_pair] = True
+    size = int(in_group.sum(1).max())
+    member = np.argsort(~in_group, axis=1, kind="stable")[:, :size]  # (H, G)
+    real = np.take_along_axis(in_group, member, 1)
+    moved = rotate(positions[member], angle[:, None]) + shift[:, None]  # (H, G, 2)
+    distance = np.hypot(moved[..., 0, None] - positions[:, 0],
+                        moved[..., 1, None] - positions[:, 1])  # (H, G, L)
+    distance = np.where(older.T[member] & real[..., None], distance, np.inf)
     nearest = np.argmin(distance, -1)
     gap = np.take_along_axis(distance, nearest[..., None], -1)[..., 0]
-    match = np.where(gap < radius, nearest, -1)
-    distinct = np.array([np.unique(m[m >= 0]).size for m in match], np.int64)
-    return distinct, match, np.where(match >= 0, gap, 0.0).sum(-1), angle, shift
+    lands = np.where(gap < radius, nearest, -1)
+    hits = np.sort(lands, axis=1)
+    first_of_value = np.ones_like(hits, bool)
+    first_of_value[:, 1:] = hits[:, 1:] != hits[:, :-1]
+    distinct = np.sum(first_of_value & (hits >= 0), 1)
+    return (distinct, np.where(real, member, -1), lands,
+            np.where(lands >= 0, gap, 0.0).sum(-1), angle, shift)
 
 
 def find_revisits(positions, obs_step, obs_landmark, fraction: float = 0.5,
                   min_inliers: int = 3, candidates: int = 4,
                   chunk: int = 512) -> list[Closure]:
-    """The best-supported revisits of the map (module docstring), most inliers first (then
-    smallest summed inlier distance), one per distinct set of joined pairs; at most
-    ``candidates``, none with fewer than ``min_inliers`` inliers.
+    """The best-supported revisits of the map (module docstring), most distinct older
+    landmarks hit first (then the smallest summed inlier distance). A candidate that shares
+    a joined pair with a better one is a variant of the same registration and is left out,
+    so the ``candidates`` returned are distinct registrations; none hits fewer than
+    ``min_inliers`` older landmarks.
 
     Args:
       positions: (L, 2) landmark positions [m] (a smoothed map).
       obs_step: (N,) step of each observation; obs_landmark: (N,) its landmark in [0, L).
       fraction: f: the inlier radius is f d_min.
-      min_inliers: the fewest group members (the defining two included) that must land on
-        distinct older landmarks.
-      chunk: hypotheses scored at once (memory (chunk, L, L) floats).
+      min_inliers: the fewest distinct older landmarks the group must land on (the two that
+        define the transform included).
+      candidates: most candidates returned.
+      chunk: hypotheses scored at once (memory (chunk, G, L) floats, G the largest group).
     """
     if min_inliers < 2:
         raise ValueError(f"min_inliers must be >= 2 (the two landmarks that define the "
@@ -152,43 +179,82 @@ def find_revisits(positions, obs_step, obs_landmark, fraction: float = 0.5,
     seen = last >= 0
     older = (last[:, None] < first[None]) & seen[:, None] & seen[None]  # older[a, b]
     newer_pair, older_pair = _hypotheses(positions, together, older, radius)
-    found = {}
+    found = []
     for lo in range(0, len(newer_pair), chunk):
         part = slice(lo, lo + chunk)
-        distinct, match, spread, angle, shift = _inliers(positions, together, older, radius,
-                                                         newer_pair[part], older_pair[part])
+        distinct, member, lands, spread, angle, shift = _inliers(
+            positions, together, older, radius, newer_pair[part], older_pair[part])
         for h in np.nonzero(distinct >= min_inliers)[0]:
-            newer = np.nonzero(match[h] >= 0)[0]
-            pairs = np.stack([match[h, newer], newer], -1)
-            rank = (-int(distinct[h]), float(spread[h]))
-            name = pairs.tobytes()
-            if name not in found or rank < found[name][0]:
-                found[name] = (rank, Closure(pairs, float(angle[h]), shift[h], len(newer_pair)))
-    return [closure for _, closure in sorted(found.values(), key=lambda item: item[0])
-            ][:candidates]
+            hit = lands[h] >= 0
+            pairs = np.stack([lands[h, hit], member[h, hit]], -1)
+            found.append(((-int(distinct[h]), float(spread[h])),
+                          Closure(pairs, float(angle[h]), shift[h], len(newer_pair))))
+    kept, used = [], set()
+    for _, closure in sorted(found, key=lambda item: item[0]):
+        pairs = set(map(tuple, closure.pairs.tolist()))
+        if pairs & used:
+            continue
+        used |= pairs
+        kept.append(closure)
+        if len(kept) == candidates:
+            break
+    return kept
 
 
-MAX_RISE_PER_DOF = 100.0  # cost rise per joined degree of freedom a closure may add
+MAX_RISE_PER_DOF = 100.0  # cost rise per removed unknown a join may add (close_loops)
+
+
+class Tested(NamedTuple):
+    """One join ``close_loops`` tested.
+
+    kind: "closure" (a ``find_revisits`` candidate) or "merge" (``landmark_merge``'s set);
+    pairs: (n, 2) (kept, joined) landmark ids proposed, in the ids of ``landmark_of_obs``;
+    landmark_of_obs: (T, K) the association the ids refer to (the map before the join);
+    rise_per_dof: the cost rise over the unknowns the join removes (2 per landmark);
+    accepted: whether it passed.
+    """
+
+    kind: str
+    pairs: np.ndarray
+    landmark_of_obs: np.ndarray
+    rise_per_dof: float
+    accepted: bool
+
+
+class ClosedLoops(NamedTuple):
+    """Result of ``close_loops``: the last ``Smoothed``; the accepted ``Closure``s in order
+    (ids of their round's map); every ``Tested`` join; landmarks_joined: landmarks before
+    less landmarks after (each join that passed removes the landmarks it joins)."""
+
+    smoothed: object
+    closures: list
+    tested: list
+    landmarks_joined: int
 
 
 def close_loops(smooth: Callable[..., object], path, landmark_of_obs, rounds: int = 8,
                 max_rise_per_dof: float = MAX_RISE_PER_DOF, verify_iterations: int = 30,
-                **find_options):
+                **find_options) -> ClosedLoops:
     """Smooth, then close verified loops and merge split pieces (module docstring).
 
     Each round takes ``find_revisits``' candidates in order, re-solves with a candidate's
-    pairs joined (at most ``verify_iterations`` Levenberg-Marquardt steps from the current
-    path) and accepts the first whose least-squares cost rises by less than
-    ``max_rise_per_dof`` x 2 n, n the pairs joined (each removes 2 unknowns). Under an exact
-    Gaussian model a true closure's rise is chi-square with 2 n degrees of freedom (about 1
-    per degree of freedom); odometry whose errors are heavier-tailed than its model (large
-    turns: the noise of Eq. (1) is evaluated at the measured turn) makes it larger. A false
-    registration has to bend the whole loop's odometry and raises the cost by orders of
-    magnitude more. The distance merges of ``landmark_merge`` face the same test, as one
-    set. Measured on the 40 first-regime tuning logs of
+    pairs joined (``join_groups``; at most ``verify_iterations`` Levenberg-Marquardt steps
+    from the current path) and accepts the first whose least-squares cost rises by less than
+    ``max_rise_per_dof`` x 2 n, n the landmarks the join removes (2 unknowns each). Under an
+    exact Gaussian model a true join's rise is chi-square with 2 n degrees of freedom (about
+    1 per degree of freedom); odometry whose errors are heavier-tailed than its model (large
+    turns: the noise of Geiser et al. 2023, Eq. (1) is evaluated at the measured turn)
+    makes it larger. A false registration has to bend the whole loop's odometry and raises
+    the cost by orders of magnitude more. The distance merges of ``landmark_merge`` face the
+    same test, as one set. The limit was read off the first 40 tuning logs of
     ``experiments/loop_closure_study.py`` (seed 800, true noise, plain squares): true
-    candidates rose 0.4-17 per degree of freedom, false ones 6,500 or more; 100 sits between
-    with a margin of 6 below and 65 above. The accepted closure is then solved to the end.
+    candidates rose 0.4-17 per degree of freedom, false ones 6,500 or more; the study
+    records every tested join's rise (``Tested``) for checking it on other logs. The cost
+    must be comparable between solves: ``smooth`` must use fixed noise (no
+    ``calibrate_rounds``, no ``visit_gap``), and plain squares are what the limit was
+    measured with. The test needs a converged base: a base that has not converged is solved
+    again once, and if it still has not, nothing more is joined (a rise measured from an
+    unconverged cost would be too small).
 
     Args:
       smooth: (path (T, 3), landmark_of_obs (T, K), iterations) -> ``smoothing.Smoothed``
@@ -200,42 +266,64 @@ def close_loops(smooth: Callable[..., object], path, landmark_of_obs, rounds: in
       max_rise_per_dof: the test's limit (above).
       verify_iterations: the LM steps a candidate gets before the test.
       find_options: passed to ``find_revisits``.
-    Returns:
-      (the last ``Smoothed``, list of the ``Closure``s made, in order).
     """
     if not max_rise_per_dof > 0 or verify_iterations < 1:
         raise ValueError(f"max_rise_per_dof must be > 0 and verify_iterations >= 1; got "
                          f"{max_rise_per_dof} and {verify_iterations}")
+    tested = []
 
-    def joined(smoothed, labels):
+    def joined(smoothed, kind, pairs, labels):
         """``smoothed`` re-solved with ``labels`` (L,) joined when the rise passes, else None."""
         count = len(labels) - (labels.max() + 1) if len(labels) else 0
         if count == 0:
             return None
         ids = relabel(smoothed.landmark_of_obs, labels)
         trial = smooth(smoothed.path, ids, verify_iterations)
-        if not trial.cost[-1] - smoothed.cost[-1] < max_rise_per_dof * 2 * count:
-            return None
-        return smooth(trial.path, ids)
+        rise = (trial.cost[-1] - smoothed.cost[-1]) / (2 * count)
+        tested.append(Tested(kind, pairs, np.asarray(smoothed.landmark_of_obs), float(rise),
+                             bool(rise < max_rise_per_dof)))
+        return smooth(trial.path, ids) if tested[-1].accepted else None
 
     smoothed = smooth(np.asarray(path, np.float64), np.asarray(landmark_of_obs))
-    closures = []
+    before, closures = _count(smoothed), []
     for _ in range(rounds):
+        if not smoothed.converged:
+            smoothed = smooth(smoothed.path, smoothed.landmark_of_obs)
+            if not smoothed.converged:
+                break
         step, landmark = _observed(smoothed)
         together = covisible_pairs(step, landmark, len(smoothed.landmark))
         closed = None
         for closure in find_revisits(smoothed.landmark, step, landmark, **find_options):
-            closed = joined(smoothed, join_groups(closure.pairs, together))
+            closed = joined(smoothed, "closure", closure.pairs,
+                            join_groups(closure.pairs, together))
             if closed is not None:
                 closures.append(closure)
                 smoothed = closed
                 break
         step, landmark = _observed(smoothed)
-        merged = joined(smoothed, merge_split_landmarks(smoothed.landmark, step, landmark))
+        labels = merge_split_landmarks(smoothed.landmark, step, landmark)
+        merged = joined(smoothed, "merge", _label_pairs(labels), labels)
         smoothed = smoothed if merged is None else merged
         if closed is None and merged is None:
             break
-    return smoothed, closures
+    return ClosedLoops(smoothed, closures, tested, before - _count(smoothed))
+
+
+def _count(smoothed) -> int:
+    """Landmarks with an observation in a ``Smoothed``."""
+    return int(np.unique(np.asarray(smoothed.landmark_of_obs)[
+        np.asarray(smoothed.landmark_of_obs) >= 0]).size)
+
+
+def _label_pairs(labels) -> np.ndarray:
+    """(n, 2) (first member of its group, member) of every landmark a relabelling (L,)
+    joins to an earlier one."""
+    labels = np.asarray(labels, np.int64)
+    _, first = np.unique(labels, return_index=True)
+    lead = first[labels]
+    joined = np.nonzero(lead != np.arange(len(labels)))[0]
+    return np.stack([lead[joined], joined], -1)
 
 
 def _observed(smoothed):

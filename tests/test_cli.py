@@ -277,13 +277,13 @@ def test_run_on_a_log_with_loop_closure(tmp_path, monkeypatch, capsys):
     # within the same few cm of the truth as without loop closure.
     assert float(values["loop_closures"]) == 0 and float(values["landmarks_joined"]) == 0
     assert float(values["smoothed_ate_rmse"]) < 0.2
-    log = str(tmp_path / "log.npz")
-    assert cli.main(["run", "--data", log, "--close-loops"]) == 2
+    log, out = str(tmp_path / "log.npz"), str(tmp_path / "bad")
+    assert cli.main(["run", "--data", log, "--close-loops", "--out", out]) == 2
     assert "needs --smooth" in capsys.readouterr().err
     assert cli.main(["run", "--data", log, "--smooth", "--close-loops", "--visit-gap",
-                     "3"]) == 2
+                     "3", "--out", out]) == 2
     assert "choose one" in capsys.readouterr().err
-    assert cli.main(["run", "--close-loops"]) == 2
+    assert cli.main(["run", "--close-loops", "--out", out]) == 2
     assert "--data" in capsys.readouterr().err
 
 

@@ -100,6 +100,13 @@ def test_filter_log_without_calibration_runs_the_given_params():
     assert run.warnings == ()
 
 
+def test_filter_log_close_loops_needs_smoothing_without_visits():
+    config = FilterConfig(num_particles=4, max_landmarks=16)
+    for options in (dict(close_loops=True), dict(close_loops=True, smooth=True, visit_gap=3)):
+        with pytest.raises(ValueError, match="close_loops needs smooth"):
+            pipeline.filter_log(_log(), config, None, calibrate=False, **options)
+
+
 def test_filter_log_calibrates_and_smooths():
     config = FilterConfig(num_particles=8, max_landmarks=16)
     run = pipeline.filter_log(_log(40), config, None, jax.random.PRNGKey(0), smooth=True,

@@ -210,9 +210,12 @@ def _filter_log(args, log):
     if visit_gap is not None and visit_gap < 1:
         raise UsageError(f"--visit-gap {visit_gap}: the gap must be at least 1 step")
     close = bool(getattr(args, "close_loops", False))
-    if close and (not smooth or visit_gap is not None):
-        raise UsageError("--close-loops needs --smooth and no --visit-gap (visits are the "
-                         "smoother's own soft loop closures; choose one)")
+    if close and not smooth:
+        raise UsageError("--close-loops needs --smooth (it closes loops in the smoothed "
+                         "history)")
+    if close and visit_gap is not None:
+        raise UsageError("--close-loops and --visit-gap: choose one (visits are the "
+                         "smoother's own soft loop closures)")
     study, filter_config, params, calibrate = _log_settings(args, log)
     run = pipeline.filter_log(log, filter_config, params, jax.random.PRNGKey(args.seed),
                               calibrate=calibrate, smooth=smooth, visit_gap=visit_gap,
