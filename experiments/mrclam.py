@@ -66,8 +66,9 @@ def main(argv=None):
         for line in run.warnings:
             print("   WARNING:", line)
     rows = np.asarray(rows)
-    print(f"median: dead reckoning {np.median(rows[:, 0]):.3f} m, filter {np.median(rows[:, 1]):.3f}"
-          f" m, smoothed {np.median(rows[:, 2]):.3f} m; ratio dead reckoning / filter "
+    print(f"median: dead reckoning {np.median(rows[:, 0]):.3f} m, filter "
+          f"{np.median(rows[:, 1]):.3f} m, smoothed {np.median(rows[:, 2]):.3f} m; ratio dead "
+          f"reckoning / filter "
           f"{np.median(rows[:, 0] / rows[:, 1]):.2f}; landmarks {np.median(rows[:, 3]):.0f}")
 
 

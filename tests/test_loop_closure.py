@@ -131,7 +131,8 @@ def loop_log(seed=3, steps=90, drift=0.01, sensor_range=6.0, blind=(30, 45)):
     """A lap of a 10 m circle and a sixth more, trees in a ring around it, a sensor that sees
     6 m but nothing during the ``blind`` steps (a stretch with no trunk in view), when the
     odometry's first turn, biased by ``drift`` rad a step, turns the path away unobserved
-    (the loop returns metres off); small Gaussian noise on every move and observation. Every tree seen in the first 20 steps gets a NEW identity
+    (the loop returns metres off); small Gaussian noise on every move and observation.
+    Every tree seen in the first 20 steps gets a NEW identity
     when it is seen again after step 60: the filter's missed loop. Returns start (3,),
     odometry (T, 3), z (T, K, 2), landmark_of_obs (T, K), tree_of_obs (T, K), truth (T+1, 3)."""
     rng = np.random.default_rng(seed)
