@@ -65,15 +65,8 @@ def test_close_loops_rejects_a_false_registration():
     while the true one (the first) passes."""
     from jaxslam.landmark_merge import relabel
     from jaxslam.loop_closure import MAX_RISE_PER_DOF
-    start, odometry, z, ids, tree, _ = loop_log()
-    params = default_params()._replace(rot1_noise=np.array([0.01, 0.0, 0.0]),
-                                       trans_noise=np.array([0.0, 0.02, 0.0]),
-                                       rot2_noise=np.array([0.002, 0.0, 0.0]))
-    dead = [start]
-    for move in odometry:
-        dead.append(np.asarray(apply_odometry(dead[-1], move), np.float64))
-    base = smooth_path(start, np.array(dead[1:]), odometry, z, ids, params, iterations=100,
-                       huber=1e6, tol=1e-10)
+    smooth, dead, ids, tree, _ = loop_smoother()
+    base = smooth(dead, ids)
     landmark_of_obs = np.asarray(base.landmark_of_obs)
     step, row = np.nonzero(landmark_of_obs >= 0)
     landmark = landmark_of_obs[step, row]
@@ -84,8 +77,7 @@ def test_close_loops_rejects_a_false_registration():
     for closure in find_revisits(base.landmark, step, landmark, candidates=20):
         true = bool(np.all(tree_of[closure.pairs[:, 0]] == tree_of[closure.pairs[:, 1]]))
         labels = join_groups(closure.pairs, together)
-        trial = smooth_path(start, base.path, odometry, z, relabel(landmark_of_obs, labels),
-                            params, iterations=30, huber=1e6, tol=1e-10)
+        trial = smooth(base.path, relabel(landmark_of_obs, labels), 30)
         removed = len(labels) - labels.max() - 1
         rises.setdefault(true, []).append((trial.cost[-1] - base.cost[-1]) / (2 * removed))
     assert rises.get(True) and rises.get(False), "need both a true and a false candidate"
@@ -178,18 +170,27 @@ def same_partition(a, b):
     return pairs(a) == pairs(b)
 
 
-def test_close_loops_rejoins_a_missed_loop_and_corrects_the_end_pose():
+def loop_smoother():
+    """``loop_log``'s smoother (plain squares, noise of the log's order: first turn 0.01
+    rad, distance 2 %, second turn 0.002 rad), its dead-reckoned path (T, 3), association,
+    trees and truth."""
     start, odometry, z, ids, tree, truth = loop_log()
     params = default_params()._replace(rot1_noise=np.array([0.01, 0.0, 0.0]),
                                        trans_noise=np.array([0.0, 0.02, 0.0]),
                                        rot2_noise=np.array([0.002, 0.0, 0.0]))
-    smooth = (lambda path, landmark_of_obs, iterations=100:
-              smooth_path(start, path, odometry, z, landmark_of_obs, params,
-                          iterations=iterations, huber=1e6, tol=1e-10))
+
+    def smooth(path, landmark_of_obs, iterations=100):
+        return smooth_path(start, path, odometry, z, landmark_of_obs, params,
+                           iterations=iterations, huber=1e6, tol=1e-10)
+
     dead = [start]
     for move in odometry:
         dead.append(np.asarray(apply_odometry(dead[-1], move), np.float64))
-    dead = np.array(dead[1:])
+    return smooth, np.array(dead[1:]), ids, tree, truth
+
+
+def test_close_loops_rejoins_a_missed_loop_and_corrects_the_end_pose():
+    smooth, dead, ids, tree, truth = loop_smoother()
     open_loop = smooth(dead, ids)
     open_error = np.hypot(*(open_loop.path[-1, :2] - truth[-1, :2]))
     # Precondition: the return is off by more than half a tree spacing, so merging by
