@@ -298,3 +298,19 @@ def test_find_revisits_against_the_plain_loop_reference(seed):
                               chunk=chunk)
         assert found and found[0].hypotheses == hypotheses
         assert np.unique(found[0].pairs[:, 0]).size == best
+
+
+def test_a_base_still_falling_is_not_tested_against():
+    """``_settled``: converged, or a last step smaller than SETTLED x the limit (LM's slow
+    tail); a base still falling by more is solved again before any join is tested."""
+    from types import SimpleNamespace
+
+    from jaxslam.loop_closure import SETTLED, _settled
+    limit = 100.0
+    tail = SETTLED * limit
+    assert _settled(SimpleNamespace(converged=True, cost=np.array([5.0, 1.0])), limit)
+    assert _settled(SimpleNamespace(converged=False, cost=np.array([9.0, 9.0 - tail / 2])),
+                    limit)
+    assert not _settled(SimpleNamespace(converged=False, cost=np.array([9.0, 9.0 - 2 * tail])),
+                        limit)
+    assert not _settled(SimpleNamespace(converged=False, cost=np.array([9.0])), limit)
