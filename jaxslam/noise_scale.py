@@ -32,11 +32,18 @@ less noisy than each one), each once (the second stage's s_o = 1 is the first st
 choice): at most len(motion_scales) + len(observation_scales) - 1 filter runs. Scales below 1 are not searched by
 default: EM's failure is the shrinking loop above.
 
-Known bias (not corrected): the new-landmark credit is the density at the gate under the
-observation's own noise, so it grows by 2 log s when the observation noise shrinks by s. On a
-log where many observations start landmarks (the split-tree case) the score therefore favours
-a narrow observation noise, and the observation stage tends to keep 1 there (Victoria Park,
-docs/results.md); the motion stage has no such term.
+The new-landmark credit is held fixed. The filter credits an observation that no landmark
+explains with the density of a match at the gate under the observation's own noise
+(``ekf.unexplained_log_likelihood``), -gate / 2 - log(sigma_r sigma_b) - log 2 pi + offset,
+which rises by 2 log(1 / s) when every observation std is multiplied by s. Scored with that
+credit, a narrow observation noise wins on any log where many observations start landmarks
+(the split-tree case): the narrower the noise, the more it splits, and the more each split
+is paid. A new landmark's proper marginal, p(z | new) = integral p(z | m) p(m) dm under a
+prior p(m) spread over the sensor's footprint, does not depend on the sensor noise at all.
+So each candidate's ``new_landmark_log_offset`` is raised by 2 log s_o
+(``scaled_noise``): every candidate credits a new landmark with EM's own density, and the
+scores differ only in how the matched observations and the moves fit. The returned Params
+carry that offset, so the filter run after the search is the run that was scored.
 
 Shapes: S candidates, T steps, K observations a step.
 """
@@ -73,9 +80,11 @@ class ScaleSearch(NamedTuple):
 
 
 def scaled_noise(params: Params, motion_scale, observation_scale) -> Params:
-    """``params`` with the motion-noise fields times ``motion_scale`` and the observation
-    noise fields times ``observation_scale`` (scalars or (S,) arrays: then every leaf gets a
-    leading S axis, for ``jax.vmap`` over candidates)."""
+    """``params`` with the motion-noise fields times ``motion_scale``, the observation
+    noise fields times ``observation_scale`` = s_o and ``new_landmark_log_offset`` plus
+    2 log s_o, which keeps ``ekf.unexplained_log_likelihood`` at every range as it was
+    (module docstring). Scalars or (S,) arrays: then every leaf gets a leading S axis, for
+    ``jax.vmap`` over candidates."""
     motion_scale = jnp.asarray(motion_scale, params.rot1_noise.dtype)
     observation_scale = jnp.asarray(observation_scale, params.rot1_noise.dtype)
     batch = jnp.broadcast_shapes(motion_scale.shape, observation_scale.shape)
@@ -88,6 +97,10 @@ def scaled_noise(params: Params, motion_scale, observation_scale) -> Params:
     fields = {name: times(getattr(params, name), motion_scale) for name in MOTION_FIELDS}
     fields.update({name: times(getattr(params, name), observation_scale)
                    for name in OBSERVATION_FIELDS})
+    offset = jnp.asarray(params.new_landmark_log_offset)
+    fields["new_landmark_log_offset"] = (
+        jnp.broadcast_to(offset, batch) + 2.0 * jnp.log(jnp.broadcast_to(observation_scale, batch))
+    ).astype(offset.dtype)
     if batch:
         rest = {name: jnp.broadcast_to(jnp.asarray(value), batch + jnp.shape(value))
                 for name, value in params._asdict().items() if name not in fields}

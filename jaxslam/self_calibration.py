@@ -38,7 +38,8 @@ estimation use, with the particle filter as the E-step's data associator:
     small grid whose filter log marginal likelihood is highest (``noise_scale``): on a log
     whose association EM could not get right (trees split, no loop closure) the M-step's
     noise is too narrow, and the likelihood, which does not condition on one association,
-    says by how much.
+    says by how much (each candidate credits a new landmark with EM's density, so a narrow
+    sensor noise is not paid for the trees it splits).
 
 Why this and not a likelihood search over a population of Params: the filter's marginal
 likelihood is a noisy, flat function of 9 motion and 4 sensor coefficients at the particle
@@ -478,7 +479,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                                             known_objective)
         values.update({name: _plain(getattr(params, name)) for name in
                        (MOTION_FIELDS if source.motion_fitted else ())
-                       + (OBSERVATION_FIELDS if source.observation_fitted else ())})
+                       + (OBSERVATION_FIELDS + ("new_landmark_log_offset",)
+                          if source.observation_fitted else ())})
         chosen += note
     elif scale_search:
         chosen += "; no noise-scale search (nothing was fitted)"

@@ -58,6 +58,40 @@ def test_scaled_noise_matches_numpy_for_scalars_and_batches():
                                float(params.range_std_floor), rtol=1e-7)
 
 
+def _unexplained_reference(distance, params):
+    """log N at the gate (``ekf.unexplained_log_likelihood``) in float64 NumPy:
+    -gate / 2 - log(sigma_r sigma_b) - log 2 pi + offset, sigma = max(c_d d + c_0, floor)."""
+    p = {name: np.asarray(value, np.float64) for name, value in params._asdict().items()}
+    sigma_r = np.maximum(p["range_noise"][0] * distance + p["range_noise"][1],
+                         p["range_std_floor"])
+    sigma_b = np.maximum(p["bearing_noise"][0] * distance + p["bearing_noise"][1],
+                         p["bearing_std_floor"])
+    return (-0.5 * p["association_gate"] - np.log(sigma_r * sigma_b) - np.log(2.0 * np.pi)
+            + p["new_landmark_log_offset"])
+
+
+@pytest.mark.parametrize("observation_scale", [0.25, 1.0, 2.0, 8.0])
+def test_scaled_noise_keeps_the_new_landmark_credit(observation_scale):
+    """The credit of an unexplained observation is the same for every candidate (module
+    docstring), at ranges on the floors (0.05 m) and off them, and it differs from the
+    unscaled credit by the 2 log s the offset absorbs. Tolerance 1e-4 nats: float32 logs of
+    stds of order 1e-3-1e-1 carry a relative error of ~1e-7 each."""
+    from jaxslam import ekf
+    params = _true_params()._replace(new_landmark_log_offset=0.3)
+    distance = np.array([0.05, 1.0, 6.0, 12.0])
+    scaled = ns.scaled_noise(params, 1.0, observation_scale)
+    expected = _unexplained_reference(distance, params)
+    for function in (ekf.unexplained_log_likelihood,
+                     jax.jit(ekf.unexplained_log_likelihood)):
+        np.testing.assert_allclose(function(distance, scaled), expected, atol=1e-4)
+    raw = _unexplained_reference(distance, ns.scaled_noise(params, 1.0, observation_scale)
+                                 ._replace(new_landmark_log_offset=0.3))
+    np.testing.assert_allclose(raw, expected - 2.0 * np.log(observation_scale), atol=1e-9)
+    batch = ns.scaled_noise(params, np.array([1.0, 1.0]), np.array([1.0, observation_scale]))
+    vmapped = jax.vmap(ekf.unexplained_log_likelihood, (None, 0))(distance, batch)
+    np.testing.assert_allclose(vmapped, np.stack([expected, expected]), atol=1e-4)
+
+
 def test_search_scores_are_single_filter_runs_and_each_candidate_runs_once(monkeypatch):
     controls, obs, poses = _log()
     key, params = jax.random.PRNGKey(3), _true_params()
