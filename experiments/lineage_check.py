@@ -27,7 +27,9 @@ association with the in-view splits, the long-gap splits, or all splits undone
 (``merge_splits``: an ORACLE, it reads the true trees; a diagnostic of what the filter's
 association lacks, never an estimate). For each loop tree, ``loop_mismatch`` measures how
 far the history's motion prediction at the return places it from its first visit: the drift
-the filter's association has to bridge there.
+the filter's association has to bridge there. For each split, ``split_geometry`` gives the range
+at which it happened and how far the history's own pose placed the tree from where its
+previous identity stood: the pose-map misfit the association refused.
 
     python experiments/lineage_check.py --seed 800 --runs 200 --forests 20 \
         --out results/lineage_check/tuning
@@ -182,6 +184,21 @@ def loop_mismatch(pose, odometry, z, true_id, valid, trees):
 SPLIT_GAPS = ((1, 2), (3, 40), (41, 10**9))  # steps since the tree's previous observation
 
 
+def _split_walk(ids, true_id, valid):
+    """Yield (t, k, i) per split event: the tree's observations, t and k (n_tree,) int arrays
+    in time order (``valid`` and associated), and the index i of the one that brought a
+    further identity. ids, true_id, valid: (T, K)."""
+    ids, true_id = np.asarray(ids, np.int64), np.asarray(true_id, np.int64)
+    used = np.asarray(valid, bool) & (ids >= 0)
+    for tree in np.unique(true_id[used]):
+        t, k = np.nonzero(used & (true_id == tree))
+        seen = {ids[t[0], k[0]]}
+        for i in range(1, t.size):
+            if ids[t[i], k[i]] not in seen:
+                seen.add(ids[t[i], k[i]])
+                yield t, k, i
+
+
 def split_events(ids, true_id, valid):
     """Every time a tree gets a further identity: its step and the steps since that tree's
     previous associated observation (1: seen at the step before, a split while in view).
@@ -189,18 +206,34 @@ def split_events(ids, true_id, valid):
     Args: ids, true_id, valid (T, K) as ``association_quality``'s.
     Returns: (n,) int steps, (n,) int gaps, in time order per tree.
     """
-    ids, true_id = np.asarray(ids, np.int64), np.asarray(true_id, np.int64)
-    used = np.asarray(valid, bool) & (ids >= 0)
-    steps, gaps = [], []
-    for tree in np.unique(true_id[used]):
-        t, k = np.nonzero(used & (true_id == tree))
-        seen = {ids[t[0], k[0]]}
-        for i in range(1, t.size):
-            if ids[t[i], k[i]] not in seen:
-                seen.add(ids[t[i], k[i]])
-                steps.append(t[i])
-                gaps.append(t[i] - t[i - 1])
-    return np.asarray(steps, np.int64), np.asarray(gaps, np.int64)
+    events = [(t[i], t[i] - t[i - 1]) for t, _, i in _split_walk(ids, true_id, valid)]
+    steps, gaps = np.asarray(events, np.int64).reshape(-1, 2).T
+    return steps, gaps
+
+
+def split_geometry(pose, z, ids, true_id, valid, last: int = 5):
+    """Where each split happens: the range of the observation that brought the further
+    identity, and its displacement, |p(pose[t], z[t, k]) - mean of p over the last ``last``
+    observations of the tree's previous identity| [m], with p(x, (r, b)) = x_xy + r (cos(x_theta
+    + b), sin(x_theta + b)) placed from the history's own poses: the misfit between the
+    history's pose and its map that the association refused.
+
+    Args: pose (T, 3) the history's poses; z (T, K, 2); ids, true_id, valid (T, K).
+    Returns: dict of (n,) arrays gap [steps], range [m], displacement [m] (``split_events``'
+      order).
+    """
+    pose, z, ids = np.asarray(pose, np.float64), np.asarray(z, np.float64), np.asarray(ids)
+    place = lambda a, b: pose[a, :2] + z[a, b, 0] * np.array([np.cos(pose[a, 2] + z[a, b, 1]),
+                                                                np.sin(pose[a, 2] + z[a, b, 1])])
+    gap, range_, displacement = [], [], []
+    for t, k, i in _split_walk(ids, true_id, valid):
+        previous = [j for j in range(i) if ids[t[j], k[j]] == ids[t[i - 1], k[i - 1]]][-last:]
+        before = np.mean([place(t[j], k[j]) for j in previous], axis=0)
+        gap.append(t[i] - t[i - 1])
+        range_.append(z[t[i], k[i], 0])
+        displacement.append(float(np.linalg.norm(place(t[i], k[i]) - before)))
+    return dict(gap=np.asarray(gap, np.int64), range=np.asarray(range_, np.float64),
+                displacement=np.asarray(displacement, np.float64))
 
 
 ORACLE_MERGES = {"in_view": (1, 2), "loop": (41, 10**9), "all": (1, 10**9)}  # gap ranges
@@ -271,11 +304,12 @@ def position_error(pose, truth_pose):
 
 
 def check_log(history: LineagePath, controls, obs, truth, params: Params,
-              iterations: int) -> tuple[dict, dict]:
+              iterations: int) -> tuple[dict, dict, dict]:
     """Per-loop-tree and per-log numbers of one history (leaves (T, ...)).
 
-    Returns (loops, log): loops, arrays (n,) over the loop trees (``loop_trees``,
-    ``loop_mismatch``): tree, closed, mismatch, return_step; log, scalars: the
+    Returns (loops, splits, log): loops, arrays (n,) over the loop trees (``loop_trees``,
+    ``loop_mismatch``): tree, closed, mismatch, return_step; splits, arrays (n_s,) over the
+    split events (``split_geometry``): gap, range, displacement; log, scalars: the
     ``AssociationQuality`` fields, the history's final position error (best), the smallest
     loop mismatch, the own-association smoother's final error and convergence, the
     smoother's final error on the ``ORACLE_MERGES`` repairs of the association
@@ -304,10 +338,11 @@ def check_log(history: LineagePath, controls, obs, truth, params: Params,
                              merge_splits(ids, obs.landmark_id, valid, gaps), params,
                              iterations=iterations, huber=PURE_GAUSSIAN, tol=1e-10)
         oracle[f"oracle_{name}"] = float(position_error(merged.path[-1], truth[-1]))
-    _, gaps = split_events(ids, obs.landmark_id, valid)
+    geometry = split_geometry(history.pose, z, ids, obs.landmark_id, valid)
+    gaps = geometry["gap"]
     splits = {f"splits_gap_{lo}_{hi}": int(np.sum((gaps >= lo) & (gaps <= hi)))
               for lo, hi in SPLIT_GAPS}
-    return loops, dict(quality._asdict(), **splits, **oracle, best=float(along[-1]),
+    return loops, geometry, dict(quality._asdict(), **splits, **oracle, best=float(along[-1]),
                 loop_mismatch_min=float(np.nanmin(mismatch, initial=np.inf)),
                 smoothed=float(position_error(smoothed.path[-1], truth[-1])),
                 smoothed_converged=bool(smoothed.converged),
@@ -361,6 +396,28 @@ def loop_table(table: dict) -> str:
     return ("| loop mismatch of the tree (return placed from the motion prediction vs first "
             "visit) [m] | loop trees | closed (one identity early and late) | of them in "
             "online > 1 m logs | closed there |\n|---|---|---|---|---|\n" + "\n".join(rows))
+
+
+RANGE_BINS = (0.0, 4.0, 8.0, 10.0, 11.0, np.inf)  # [m]
+
+
+def split_table(table: dict) -> str:
+    """Markdown: the in-view splits (gap <= 2 steps) by the range of the observation that
+    brought the further identity, with their displacement (``split_geometry``), over all logs
+    and over those with online error > 1 m."""
+    in_view = table["split_gap"] <= 2
+    diverged = table["online"][table["split_log"]] > 1
+    rows = []
+    for lo, hi in zip(RANGE_BINS[:-1], RANGE_BINS[1:]):
+        sel = in_view & (table["split_range"] >= lo) & (table["split_range"] < hi)
+        shift = table["split_displacement"][sel]
+        label = f"{lo:g}-{hi:g}" if np.isfinite(hi) else f">= {lo:g}"
+        rows.append(f"| {label} | {int(np.sum(sel))} | {int(np.sum(sel & diverged))} | "
+                    + (" / ".join(f"{v:.3f}" for v in np.percentile(shift, [25, 50, 75]))
+                       if shift.size else "") + " |")
+    return ("| range of the split observation [m] | in-view splits (gap <= 2 steps) | of them in "
+            "online > 1 m logs | displacement from the previous identity's placement, "
+            "quartiles [m] |\n|---|---|---|---|\n" + "\n".join(rows))
 
 
 def tables(table: dict) -> list[str]:
@@ -435,6 +492,7 @@ def tables(table: dict) -> list[str]:
             f"{int(np.sum(over_half < 0))}); departure before the 0.5 m drift in "
             f"{share((first < over_half) | (over_half < 0))}.")
     out.append(loop_table(table))
+    out.append(split_table(table))
     split_rows = []
     for label, sel in (("online > 1 m", table["online"] > 1), ("online <= 1 m",
                                                                table["online"] <= 1)):
@@ -524,13 +582,14 @@ def main(argv=None):
                         help="prefix of the .npz (per-log arrays) and .md (tables)")
     args = parser.parse_args(argv)
     first, controls, obs, truth, params, online, histories, notes = regime_histories(args)
-    tick, per_log, per_loop = time.perf_counter(), [], []
+    tick, per_log, per_loop, per_split = time.perf_counter(), [], [], []
     for r in range(first):
-        loops, log = check_log(jax.tree.map(lambda a: a[r], histories), controls[r],
+        loops, splits, log = check_log(jax.tree.map(lambda a: a[r], histories), controls[r],
                                jax.tree.map(lambda a: a[r], obs),
                                np.asarray(truth[r], np.float64), params, args.iterations)
         per_log.append(log)
         per_loop.append(dict(loops, log=np.full(loops["tree"].size, r)))
+        per_split.append(dict(splits, log=np.full(splits["gap"].size, r)))
         if (r + 1) % 50 == 0:
             print(f"{r + 1} logs checked in {time.perf_counter() - tick:.0f} s", flush=True)
     notes.append(f"Host checks (lineage, association, smoother): "
@@ -539,6 +598,8 @@ def main(argv=None):
     table.update(online=online, sparsest=longest_sparse_stretch(obs.valid))
     table.update({f"loop_{name}": np.concatenate([loop[name] for loop in per_loop])
                   for name in per_loop[0]})
+    table.update({f"split_{name}": np.concatenate([split[name] for split in per_split])
+                  for name in per_split[0]})
     write_outputs("lineage_check.py", argv, [" ".join(notes)] + tables(table), table, args.out)
 
 

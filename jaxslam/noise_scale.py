@@ -39,7 +39,8 @@ which rises by 2 log(1 / s) when every observation std is multiplied by s. Score
 credit, a narrow observation noise wins on any log where many observations start landmarks
 (the split-tree case): the narrower the noise, the more it splits, and the more each split
 is paid. A new landmark's proper marginal, p(z | new) = integral p(z | m) p(m) dm under a
-prior p(m) spread over the sensor's footprint, does not depend on the sensor noise at all.
+prior p(m) spread over the sensor's footprint, does not depend on the sensor noise
+(when p(m) is much wider than the noise).
 So each candidate's ``new_landmark_log_offset`` is raised by 2 log s_o
 (``scaled_noise``): every candidate credits a new landmark with EM's own density, and the
 scores differ only in how the matched observations and the moves fit. The returned Params
@@ -97,10 +98,9 @@ def scaled_noise(params: Params, motion_scale, observation_scale) -> Params:
     fields = {name: times(getattr(params, name), motion_scale) for name in MOTION_FIELDS}
     fields.update({name: times(getattr(params, name), observation_scale)
                    for name in OBSERVATION_FIELDS})
-    offset = jnp.asarray(params.new_landmark_log_offset)
     fields["new_landmark_log_offset"] = (
-        jnp.broadcast_to(offset, batch) + 2.0 * jnp.log(jnp.broadcast_to(observation_scale, batch))
-    ).astype(offset.dtype)
+        jnp.asarray(params.new_landmark_log_offset, observation_scale.dtype)
+        + 2.0 * jnp.log(jnp.broadcast_to(observation_scale, batch)))
     if batch:
         rest = {name: jnp.broadcast_to(jnp.asarray(value), batch + jnp.shape(value))
                 for name, value in params._asdict().items() if name not in fields}

@@ -5,7 +5,7 @@ import pytest
 
 from experiments.lineage_check import (AssociationQuality, association_quality, loop_mismatch,
                                       loop_trees, main, merge_splits,
-                                      split_events)
+                                      split_events, split_geometry)
 
 # Six steps, two rows. Trees 5, 9, 2; identities 0, 1, 2. Tree 9 is split (identity 1 at
 # t = 0, 1, identity 2 from t = 2), tree 2 is wrongly matched to tree 5's identity 0 at t = 2,
@@ -42,6 +42,36 @@ def test_loop_trees_and_split_events_hand_example():
     steps, gaps = split_events(IDS, TRUE, VALID)
     np.testing.assert_array_equal(steps, [2])
     np.testing.assert_array_equal(gaps, [1])
+
+
+def test_split_geometry_hand_example():
+    """Same example. With every pose at (1, -2) facing +x, tree 9's split observation (t = 2,
+    row 0) is read at (2.0 m, 0); its previous identity 1 was read at t = 0 and 1 as (1.9 m, 0)
+    and (2.1 m, 0.1 rad): placed at (1, -2) + (1.9, 0) and (1, -2) + 2.1 (cos 0.1, sin 0.1), so
+    the displacement is |(2, 0) - their mean| (the pose's translation cancels); gap 1, range
+    2.0. With the pose at t = 2 moved to (1.5, -2, 0.1 rad) and ``last=1`` only t = 1's
+    placement counts: |(0.5, 0) + (2 - 2.1) (cos 0.1, sin 0.1)|. A tree split nowhere gives empty
+    arrays, as ``split_events`` does."""
+    z = np.zeros(TRUE.shape + (2,))
+    z[0, 1], z[1, 1], z[2, 0] = (1.9, 0.0), (2.1, 0.1), (2.0, 0.0)
+    pose = np.zeros((TRUE.shape[0], 3))
+    pose[:, :2] = (1.0, -2.0)
+    out = split_geometry(pose, z, IDS, TRUE, VALID)
+    before = np.mean([[1.9, 0.0], [2.1 * np.cos(0.1), 2.1 * np.sin(0.1)]], axis=0)
+    np.testing.assert_array_equal(out["gap"], [1])
+    np.testing.assert_array_equal(out["range"], [2.0])
+    np.testing.assert_allclose(out["displacement"], [np.linalg.norm([2.0, 0.0] - before)],
+                               rtol=1e-12)
+    pose[2, :2], pose[2, 2] = (1.5, -2.0), 0.1  # x moved by 0.5 m, heading by 0.1 rad
+    out = split_geometry(pose, z, IDS, TRUE, VALID, last=1)
+    np.testing.assert_allclose(out["displacement"], [np.hypot(0.5 - 0.1 * np.cos(0.1),
+                                                              -0.1 * np.sin(0.1))], rtol=1e-12)
+    unsplit = np.where(TRUE == 9, 1, 0)
+    empty = split_geometry(pose, z, unsplit, TRUE, VALID)
+    assert all(value.shape == (0,) for value in empty.values())
+    assert empty["gap"].dtype == np.int64 and empty["displacement"].dtype == np.float64
+    for value in split_events(unsplit, TRUE, VALID):
+        assert value.shape == (0,) and value.dtype == np.int64
 
 
 def test_merge_splits_hand_example():

@@ -70,26 +70,46 @@ def _unexplained_reference(distance, params):
             + p["new_landmark_log_offset"])
 
 
-@pytest.mark.parametrize("observation_scale", [0.25, 1.0, 2.0, 8.0])
+@pytest.mark.parametrize("observation_scale", [0.25, 1.0, 3.0, 8.0])
 def test_scaled_noise_keeps_the_new_landmark_credit(observation_scale):
     """The credit of an unexplained observation is the same for every candidate (module
-    docstring), at ranges on the floors (0.05 m) and off them, and it differs from the
-    unscaled credit by the 2 log s the offset absorbs. Tolerance 1e-4 nats: float32 logs of
-    stds of order 1e-3-1e-1 carry a relative error of ~1e-7 each."""
+    docstring), at ranges where the floors bind (0.05 m: range floor 0.05 > 0.0305, bearing
+    floor 0.006 > 0.00405) and where they do not, and it differs from the unscaled credit by
+    the 2 log s the offset absorbs. Tolerance 1e-5 nats: the credit (~10 nats) is computed in
+    float32 (relative rounding ~1e-7 per operation); the raw shift is checked to 1e-6 because
+    s x a float32 std is rounded again when s is not a power of two."""
     from jaxslam import ekf
-    params = _true_params()._replace(new_landmark_log_offset=0.3)
+    params = _true_params()._replace(new_landmark_log_offset=0.3, range_std_floor=0.05,
+                                     bearing_std_floor=0.006)
     distance = np.array([0.05, 1.0, 6.0, 12.0])
+    sigma_r, sigma_b = (np.asarray(v) for v in ekf.measurement_std(distance[:1], params))
+    assert sigma_r[0] == pytest.approx(0.05) and sigma_b[0] == pytest.approx(0.006)  # floors
     scaled = ns.scaled_noise(params, 1.0, observation_scale)
     expected = _unexplained_reference(distance, params)
     for function in (ekf.unexplained_log_likelihood,
                      jax.jit(ekf.unexplained_log_likelihood)):
-        np.testing.assert_allclose(function(distance, scaled), expected, atol=1e-4)
-    raw = _unexplained_reference(distance, ns.scaled_noise(params, 1.0, observation_scale)
-                                 ._replace(new_landmark_log_offset=0.3))
-    np.testing.assert_allclose(raw, expected - 2.0 * np.log(observation_scale), atol=1e-9)
+        np.testing.assert_allclose(function(distance, scaled), expected, atol=1e-5)
+    raw = _unexplained_reference(distance, scaled._replace(new_landmark_log_offset=0.3))
+    np.testing.assert_allclose(raw, expected - 2.0 * np.log(observation_scale), atol=1e-6)
     batch = ns.scaled_noise(params, np.array([1.0, 1.0]), np.array([1.0, observation_scale]))
     vmapped = jax.vmap(ekf.unexplained_log_likelihood, (None, 0))(distance, batch)
-    np.testing.assert_allclose(vmapped, np.stack([expected, expected]), atol=1e-4)
+    np.testing.assert_allclose(vmapped, np.stack([expected, expected]), atol=1e-5)
+
+
+def test_scaled_noise_offset_dtype_and_batched_params():
+    """An integer offset is not truncated (0 + 2 log 8 = 4.159), and Params already batched
+    (S = 2) take scalar scales, as before the offset was added."""
+    params = _true_params()._replace(new_landmark_log_offset=0)
+    offset = ns.scaled_noise(params, 1.0, 8.0).new_landmark_log_offset
+    np.testing.assert_allclose(offset, 2.0 * np.log(8.0), rtol=1e-6)
+    batched = ns.scaled_noise(_true_params(), np.array([1.0, 2.0]), np.array([1.0, 2.0]))
+    again = ns.scaled_noise(batched, 1.0, 2.0)
+    chex.assert_shape(again.new_landmark_log_offset, (2,))
+    np.testing.assert_allclose(again.new_landmark_log_offset,
+                               np.array([0.0, 2.0 * np.log(2.0)]) + 2.0 * np.log(2.0),
+                               rtol=1e-6)
+    np.testing.assert_allclose(again.range_std_floor, np.array([2.0, 4.0]) *
+                               float(_true_params().range_std_floor), rtol=1e-6)
 
 
 def test_search_scores_are_single_filter_runs_and_each_candidate_runs_once(monkeypatch):
