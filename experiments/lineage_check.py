@@ -20,7 +20,7 @@ If a diverged run's association is clean (every identity one tree, no tree split
 closed), the smoother on the filter's own association has the information the MAP floor has
 and the online estimate is what failed; if it is broken, the smoother inherits the error.
 
-Which break matters: every further identity a tree gets is a split event (``split_events``),
+Which break matters: every further identity a tree gets is a split event (``split_geometry``),
 with the steps since the tree was last seen (1-2: lost while in view; > 40: a re-sighting,
 on this 250-step loop the loop's return). The smoother is also run on the history's own
 association with the in-view splits, the long-gap splits, or all splits undone
@@ -199,40 +199,31 @@ def _split_walk(ids, true_id, valid):
                 yield t, k, i
 
 
-def split_events(ids, true_id, valid):
-    """Every time a tree gets a further identity: its step and the steps since that tree's
-    previous associated observation (1: seen at the step before, a split while in view).
-
-    Args: ids, true_id, valid (T, K) as ``association_quality``'s.
-    Returns: (n,) int steps, (n,) int gaps, in time order per tree.
-    """
-    events = [(t[i], t[i] - t[i - 1]) for t, _, i in _split_walk(ids, true_id, valid)]
-    steps, gaps = np.asarray(events, np.int64).reshape(-1, 2).T
-    return steps, gaps
-
-
 def split_geometry(pose, z, ids, true_id, valid, last: int = 5):
-    """Where each split happens: the range of the observation that brought the further
-    identity, and its displacement, |p(pose[t], z[t, k]) - mean of p over the last ``last``
+    """Every time a tree gets a further identity (a split event): its step, the steps since
+    that tree's previous associated observation (1: seen at the step before, a split while in
+    view), the range of the observation that brought the further identity, and its
+    displacement, |p(pose[t], z[t, k]) - mean of p over the last ``last``
     observations of the tree's previous identity| [m], with p(x, (r, b)) = x_xy + r (cos(x_theta
     + b), sin(x_theta + b)) placed from the history's own poses: the misfit between the
     history's pose and its map that the association refused.
 
     Args: pose (T, 3) the history's poses; z (T, K, 2); ids, true_id, valid (T, K).
-    Returns: dict of (n,) arrays gap [steps], range [m], displacement [m] (``split_events``'
-      order).
+    Returns: dict of (n,) arrays step, gap [steps], range [m], displacement [m], in time
+      order per tree.
     """
     pose, z, ids = np.asarray(pose, np.float64), np.asarray(z, np.float64), np.asarray(ids)
     place = lambda a, b: pose[a, :2] + z[a, b, 0] * np.array([np.cos(pose[a, 2] + z[a, b, 1]),
                                                                 np.sin(pose[a, 2] + z[a, b, 1])])
-    gap, range_, displacement = [], [], []
+    step, gap, range_, displacement = [], [], [], []
     for t, k, i in _split_walk(ids, true_id, valid):
+        step.append(t[i])
         previous = [j for j in range(i) if ids[t[j], k[j]] == ids[t[i - 1], k[i - 1]]][-last:]
         before = np.mean([place(t[j], k[j]) for j in previous], axis=0)
         gap.append(t[i] - t[i - 1])
         range_.append(z[t[i], k[i], 0])
         displacement.append(float(np.linalg.norm(place(t[i], k[i]) - before)))
-    return dict(gap=np.asarray(gap, np.int64), range=np.asarray(range_, np.float64),
+    return dict(step=np.asarray(step, np.int64), gap=np.asarray(gap, np.int64), range=np.asarray(range_, np.float64),
                 displacement=np.asarray(displacement, np.float64))
 
 
@@ -243,7 +234,7 @@ def merge_splits(ids, true_id, valid, gaps=(1, 10**9)):
     """Diagnostic ORACLE (uses the true trees): undo the splits whose gap is in ``gaps``.
 
     Walking each tree's associated observations in time, a further identity that appears
-    ``gaps[0]``..``gaps[1]`` steps after the tree's previous observation (``split_events``)
+    ``gaps[0]``..``gaps[1]`` steps after the tree's previous observation (``split_geometry``)
     is relabelled, for that tree's observations, to the label the previous observation got.
     Labels are then renumbered 0..L'-1 (the smoother wants no empty landmark).
 

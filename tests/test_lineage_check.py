@@ -5,7 +5,7 @@ import pytest
 
 from experiments.lineage_check import (AssociationQuality, association_quality, loop_mismatch,
                                       loop_trees, main, merge_splits,
-                                      split_events, split_geometry)
+                                      split_geometry)
 
 # Six steps, two rows. Trees 5, 9, 2; identities 0, 1, 2. Tree 9 is split (identity 1 at
 # t = 0, 1, identity 2 from t = 2), tree 2 is wrongly matched to tree 5's identity 0 at t = 2,
@@ -31,7 +31,7 @@ def test_hand_example():
         assert getattr(quality, name) == pytest.approx(want), name
 
 
-def test_loop_trees_and_split_events_hand_example():
+def test_loop_trees_and_split_steps_hand_example():
     """Same example: loop trees 5 (identity 0 early and late: closed) and 9 (1 early, 2 late:
     open); tree 9's identity 2 appears at t = 2, one step after its last sighting (gap 1);
     tree 5 keeps identity 0 and tree 2 is seen once (t = 4's unassociated row is no
@@ -39,9 +39,10 @@ def test_loop_trees_and_split_events_hand_example():
     trees, closed = loop_trees(IDS, TRUE, VALID, early=2, late=2)
     np.testing.assert_array_equal(trees, [5, 9])
     np.testing.assert_array_equal(closed, [True, False])
-    steps, gaps = split_events(IDS, TRUE, VALID)
-    np.testing.assert_array_equal(steps, [2])
-    np.testing.assert_array_equal(gaps, [1])
+    splits = split_geometry(np.zeros((TRUE.shape[0], 3)), np.ones(TRUE.shape + (2,)), IDS,
+                            TRUE, VALID)
+    np.testing.assert_array_equal(splits["step"], [2])
+    np.testing.assert_array_equal(splits["gap"], [1])
 
 
 def test_split_geometry_hand_example():
@@ -51,7 +52,7 @@ def test_split_geometry_hand_example():
     the displacement is |(2, 0) - their mean| (the pose's translation cancels); gap 1, range
     2.0. With the pose at t = 2 moved to (1.5, -2, 0.1 rad) and ``last=1`` only t = 1's
     placement counts: |(0.5, 0) + (2 - 2.1) (cos 0.1, sin 0.1)|. A tree split nowhere gives empty
-    arrays, as ``split_events`` does."""
+    arrays."""
     z = np.zeros(TRUE.shape + (2,))
     z[0, 1], z[1, 1], z[2, 0] = (1.9, 0.0), (2.1, 0.1), (2.0, 0.0)
     pose = np.zeros((TRUE.shape[0], 3))
@@ -69,9 +70,8 @@ def test_split_geometry_hand_example():
     unsplit = np.where(TRUE == 9, 1, 0)
     empty = split_geometry(pose, z, unsplit, TRUE, VALID)
     assert all(value.shape == (0,) for value in empty.values())
-    assert empty["gap"].dtype == np.int64 and empty["displacement"].dtype == np.float64
-    for value in split_events(unsplit, TRUE, VALID):
-        assert value.shape == (0,) and value.dtype == np.int64
+    assert empty["step"].dtype == empty["gap"].dtype == np.int64
+    assert empty["displacement"].dtype == np.float64
 
 
 def test_merge_splits_hand_example():
