@@ -46,6 +46,7 @@ from __future__ import annotations
 from typing import Callable, NamedTuple
 
 import numpy as np
+import scipy.spatial
 
 from jaxslam.landmark_merge import (covisible_distance, covisible_pairs, join_groups,
                                     merge_split_landmarks, relabel)
@@ -120,11 +121,16 @@ def _hypotheses(positions, together, older, radius):
     return np.stack([b1[n], b2[n]], -1), np.stack([a1[o], a2[o]], -1)
 
 
-def _inliers(positions, together, older, radius, newer_pair, older_pair):
+def _inliers(positions, together, older, radius, newer_pair, older_pair, tree=None):
     """Per hypothesis (H of them, groups padded to G members): distinct older landmarks hit
     (H,), the group's members (H, G) (-1: padding), the older landmark each member lands on
     (H, G) (-1: none), summed inlier distance (H,) [m], angle (H,) and translation (H, 2).
-    Memory (H, G, L) floats."""
+
+    A member lands on the nearest landmark older than it within ``radius`` of its moved
+    position. The candidates are the landmarks within ``radius`` (a k-d tree over
+    ``positions``, ``tree``; k is the most any moved member has within the radius, so the
+    nearest older one is always among them): memory (H, G, k), not (H, G, L)."""
+    tree = scipy.spatial.cKDTree(positions) if tree is None else tree
     angle, shift = rigid_from_pairs(positions[newer_pair], positions[older_pair])
     in_group = together[newer_pair[:, 0]] | together[newer_pair[:, 1]]  # (H, L)
     in_group[np.arange(len(in_group))[:, None], newer_pair] = True
@@ -132,12 +138,22 @@ def _inliers(positions, together, older, radius, newer_pair, older_pair):
     member = np.argsort(~in_group, axis=1, kind="stable")[:, :size]  # (H, G)
     real = np.take_along_axis(in_group, member, 1)
     moved = rotate(positions[member], angle[:, None]) + shift[:, None]  # (H, G, 2)
-    distance = np.hypot(moved[..., 0, None] - positions[:, 0],
-                        moved[..., 1, None] - positions[:, 1])  # (H, G, L)
-    distance = np.where(older.T[member] & real[..., None], distance, np.inf)
-    nearest = np.argmin(distance, -1)
-    gap = np.take_along_axis(distance, nearest[..., None], -1)[..., 0]
-    lands = np.where(gap < radius, nearest, -1)
+    points = moved[real]  # (M, 2) the real members' moved positions
+    lands = np.full(member.shape, -1)
+    gap = np.full(member.shape, np.inf)
+    neighbours = int(np.max(tree.query_ball_point(points, radius, return_length=True)))
+    if neighbours > 0:
+        bound = np.nextafter(radius, np.inf)  # the query keeps < bound; the test below is < r
+        distance, index = tree.query(points, k=neighbours, distance_upper_bound=bound)
+        distance, index = distance.reshape(len(points), -1), index.reshape(len(points), -1)
+        found = index < len(positions)  # (M, k)
+        index = np.where(found, index, 0)
+        candidate = found & older[index, member[real][:, None]] & (distance < radius)
+        distance = np.where(candidate, distance, np.inf)
+        nearest = np.argmin(distance, -1)  # sorted by distance: the first older one
+        hit = np.take_along_axis(distance, nearest[:, None], -1)[:, 0]
+        lands[real] = np.where(np.isfinite(hit), index[np.arange(len(points)), nearest], -1)
+        gap[real] = hit
     hits = np.sort(lands, axis=1)
     first_of_value = np.ones_like(hits, bool)
     first_of_value[:, 1:] = hits[:, 1:] != hits[:, :-1]
@@ -148,7 +164,7 @@ def _inliers(positions, together, older, radius, newer_pair, older_pair):
 
 def find_revisits(positions, obs_step, obs_landmark, fraction: float = 0.5,
                   min_inliers: int = 3, candidates: int = 4,
-                  chunk: int = 512) -> list[Closure]:
+                  chunk: int = 4096) -> list[Closure]:
     """The best-supported revisits of the map (module docstring), most distinct older
     landmarks hit first (then the smallest summed inlier distance). A candidate that shares
     a joined pair with a better one is a variant of the same registration and is left out,
@@ -162,7 +178,8 @@ def find_revisits(positions, obs_step, obs_landmark, fraction: float = 0.5,
       min_inliers: the fewest distinct older landmarks the group must land on (the two that
         define the transform included).
       candidates: most candidates returned.
-      chunk: hypotheses scored at once (memory (chunk, G, L) floats, G the largest group).
+      chunk: hypotheses scored at once (memory (chunk, L) booleans and (chunk, G, k) floats,
+        G the largest group, k the most landmarks within the radius of a moved member).
     """
     if min_inliers < 2:
         raise ValueError(f"min_inliers must be >= 2 (the two landmarks that define the "
@@ -179,11 +196,12 @@ def find_revisits(positions, obs_step, obs_landmark, fraction: float = 0.5,
     seen = last >= 0
     older = (last[:, None] < first[None]) & seen[:, None] & seen[None]  # older[a, b]
     newer_pair, older_pair = _hypotheses(positions, together, older, radius)
+    tree = scipy.spatial.cKDTree(positions)
     found = []
     for lo in range(0, len(newer_pair), chunk):
         part = slice(lo, lo + chunk)
         distinct, member, lands, spread, angle, shift = _inliers(
-            positions, together, older, radius, newer_pair[part], older_pair[part])
+            positions, together, older, radius, newer_pair[part], older_pair[part], tree)
         for h in np.nonzero(distinct >= min_inliers)[0]:
             hit = lands[h] >= 0
             pairs = np.stack([lands[h, hit], member[h, hit]], -1)

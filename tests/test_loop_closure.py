@@ -280,10 +280,13 @@ def reference_support(positions, step, landmark, radius):
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_find_revisits_against_the_plain_loop_reference(seed):
+@pytest.mark.parametrize("fraction", [0.5, 2.0, 4.0])
+def test_find_revisits_against_the_plain_loop_reference(seed, fraction):
     """Random maps of 14 landmarks, 7 steps of 3-4 sightings each (a landmark seen in a few
     consecutive steps): the best candidate's support and the hypothesis count equal the
-    reference's, for any chunk size (chunks only bound memory)."""
+    reference's, for any chunk size (chunks only bound memory). Radii of 2 and 4 d_min put
+    several landmarks within reach of a moved member, so the nearest OLDER one must be picked
+    among them (the k-d tree query's k > 1)."""
     rng = np.random.default_rng(seed)
     positions = rng.uniform(0, 12, (14, 2))
     step = np.repeat(np.arange(7), 4)
@@ -291,11 +294,11 @@ def test_find_revisits_against_the_plain_loop_reference(seed):
                                 (2 * t + 3) % 14] for t in range(7)])
     step, landmark = step[landmark < 14], landmark[landmark < 14]
     from jaxslam.landmark_merge import covisible_distance
-    radius = 0.5 * covisible_distance(positions, covisible_pairs(step, landmark, 14))
+    radius = fraction * covisible_distance(positions, covisible_pairs(step, landmark, 14))
     best, hypotheses = reference_support(positions, step, landmark, radius)
     for chunk in (1, 7, 512):
-        found = find_revisits(positions, step, landmark, min_inliers=2, candidates=1,
-                              chunk=chunk)
+        found = find_revisits(positions, step, landmark, fraction=fraction, min_inliers=2,
+                              candidates=1, chunk=chunk)
         assert found and found[0].hypotheses == hypotheses
         assert np.unique(found[0].pairs[:, 0]).size == best
 
