@@ -46,6 +46,18 @@ So each candidate's ``new_landmark_log_offset`` is raised by 2 log s_o
 scores differ only in how the matched observations and the moves fit. The returned Params
 carry that offset, so the filter run after the search is the run that was scored.
 
+A run whose map overflowed is not a fair candidate. An observation no landmark explains is
+credited as a new landmark whether or not a free slot takes it; when the map is full its
+birth is dropped, the tree stays unmapped, and its next sighting is credited as new again:
+the score of such a run counts the same trees over and over, and the narrower the noise, the
+more trees it splits and the earlier the map fills. On Victoria Park with EM's settings
+(320 slots, twice the documented ~150 trees) the observation scales x1, 2, 4 all overflowed
+(428 k, 353 k and 334 k births dropped over the 100 particles) and outscored x8, the first
+that did not (log likelihood 39.2 k, 29.1 k, 11.5 k against 7.2 k). So a stage ranks its
+candidates by likelihood among those whose run dropped no birth (``best_scale``), and only
+when every candidate dropped births by likelihood alone (as before: nothing better is
+known, and the run's warnings say the map was full).
+
 Shapes: S candidates, T steps, K observations a step.
 """
 from __future__ import annotations
@@ -69,7 +81,9 @@ class ScaleSearch(NamedTuple):
     motion_scale / observation_scale: the chosen multipliers s_m, s_o.
     motion_scales: (S_m,) candidates of the first stage; motion_objective: (S_m,) their log
     marginal likelihoods. observation_scales / observation_objective: the same for the second
-    stage (at the chosen s_m).
+    stage (at the chosen s_m). motion_dropped / observation_dropped: (S_m,) / (S_o,) the
+    births each candidate's run dropped for want of a free slot (summed over particles and
+    steps; ``best_scale``).
     """
 
     motion_scale: float
@@ -78,6 +92,8 @@ class ScaleSearch(NamedTuple):
     motion_objective: np.ndarray
     observation_scales: np.ndarray
     observation_objective: np.ndarray
+    motion_dropped: np.ndarray
+    observation_dropped: np.ndarray
 
 
 def scaled_noise(params: Params, motion_scale, observation_scale) -> Params:
@@ -108,9 +124,20 @@ def scaled_noise(params: Params, motion_scale, observation_scale) -> Params:
     return params._replace(**fields)
 
 
-def log_likelihood(config: FilterConfig, key, params: Params, controls,
-                   observations: Observations, initial_pose=None) -> float:
-    """The filter's log marginal likelihood of the log under ``params`` with ``key``.
+class RunScore(NamedTuple):
+    """A candidate's filter run: log_likelihood, the log marginal likelihood estimate
+    (``Trace.log_evidence`` summed); dropped_births, the births it dropped because the map
+    was full (``Trace.num_dropped_births`` summed over steps; each is summed over particles).
+    """
+
+    log_likelihood: float
+    dropped_births: int
+
+
+def run_score(config: FilterConfig, key, params: Params, controls,
+              observations: Observations, initial_pose=None) -> RunScore:
+    """The filter's log marginal likelihood of the log under ``params`` with ``key``, and
+    the births its run dropped (``RunScore``).
 
     One ``run_filter(..., record_lineage=True)`` call: the static arguments of the EM runs in
     ``calibrate_params``, so the search reuses their compiled filter (``Params`` are dynamic)
@@ -120,13 +147,24 @@ def log_likelihood(config: FilterConfig, key, params: Params, controls,
     """
     _, trace = run_filter(config, key, params, controls, observations, initial_pose,
                           record_lineage=True)
-    return float(np.sum(np.asarray(trace.log_evidence)))  # summed as calibrate_params does
+    return RunScore(float(np.sum(np.asarray(trace.log_evidence))),  # as calibrate_params sums
+                    int(np.sum(np.asarray(trace.num_dropped_births))))
 
 
-def best_scale(scales, objective) -> float:
+def log_likelihood(config: FilterConfig, key, params: Params, controls,
+                   observations: Observations, initial_pose=None) -> float:
+    """``run_score``'s log marginal likelihood alone."""
+    return run_score(config, key, params, controls, observations, initial_pose).log_likelihood
+
+
+def best_scale(scales, objective, dropped=None) -> float:
     """The scale (S,) of highest finite ``objective`` (S,), the first of ties; 1 when no
-    objective is finite (NaN or +-inf everywhere)."""
+    objective is finite (NaN or +-inf everywhere). With ``dropped`` (S,) births each
+    candidate's run dropped, only candidates that dropped none compete when there is one
+    (module docstring: an overflowed run's score counts unmapped trees again and again)."""
     objective = np.where(np.isfinite(objective), objective, -np.inf)
+    if dropped is not None and np.any(np.asarray(dropped) == 0):
+        objective = np.where(np.asarray(dropped) == 0, objective, -np.inf)
     if not np.any(np.isfinite(objective)):
         return 1.0
     return float(np.asarray(scales)[int(np.argmax(objective))])
@@ -147,7 +185,8 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
                         observations: Observations, initial_pose=None, *,
                         motion_scales=DEFAULT_SCALES,
                         observation_scales=DEFAULT_SCALES,
-                        known_objective: float | None = None) -> tuple[Params, ScaleSearch]:
+                        known_objective: float | None = None,
+                        known_dropped: int | None = None) -> tuple[Params, ScaleSearch]:
     """Multiply ``params``' motion and observation noise by the scales of highest filter log
     marginal likelihood (module docstring: coordinate ascent, motion first).
 
@@ -157,28 +196,38 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
       params: the settings to scale (EM's result).
       motion_scales / observation_scales: the candidate multipliers of each stage (each must
         contain 1; ``(1.0,)`` leaves that group as it is).
-      known_objective: ``log_likelihood`` of ``params`` itself with ``key`` when the caller
-        has it (EM's run of the settings it returns), so that candidate is not run again.
+      known_objective, known_dropped: ``run_score`` of ``params`` itself with ``key`` when the
+        caller has it (EM's run of the settings it returns), so that candidate is not run
+        again; both or neither.
     Returns:
       (scaled ``Params``, ``ScaleSearch``). A stage whose candidates all score a non-finite
-      value keeps 1.
+      value keeps 1; among candidates whose runs dropped no birth when there is one
+      (``best_scale``).
     """
     motion_scales = check_scales("motion_scales", motion_scales)
     observation_scales = check_scales("observation_scales", observation_scales)
-    scored = {} if known_objective is None else {(1.0, 1.0): float(known_objective)}
+    if (known_objective is None) != (known_dropped is None):
+        raise ValueError("known_objective and known_dropped go together (one run_score); got "
+                         f"{known_objective} and {known_dropped}")
+    scored = {} if known_objective is None else {
+        (1.0, 1.0): RunScore(float(known_objective), int(known_dropped))}
 
-    def score(motion: float, observation: float) -> float:
+    def score(motion: float, observation: float) -> RunScore:
         if (motion, observation) not in scored:  # each candidate runs once
-            scored[motion, observation] = log_likelihood(
+            scored[motion, observation] = run_score(
                 config, key, scaled_noise(params, motion, observation), controls,
                 observations, initial_pose)
         return scored[motion, observation]
 
-    motion_objective = np.array([score(float(m), 1.0) for m in motion_scales])
-    motion_scale = best_scale(motion_scales, motion_objective)
-    observation_objective = np.array([score(motion_scale, float(o))
-                                      for o in observation_scales])
-    observation_scale = best_scale(observation_scales, observation_objective)
+    motion = [score(float(m), 1.0) for m in motion_scales]
+    motion_objective = np.array([run.log_likelihood for run in motion])
+    motion_dropped = np.array([run.dropped_births for run in motion], np.int64)
+    motion_scale = best_scale(motion_scales, motion_objective, motion_dropped)
+    observation = [score(motion_scale, float(o)) for o in observation_scales]
+    observation_objective = np.array([run.log_likelihood for run in observation])
+    observation_dropped = np.array([run.dropped_births for run in observation], np.int64)
+    observation_scale = best_scale(observation_scales, observation_objective,
+                                   observation_dropped)
     return scaled_noise(params, motion_scale, observation_scale), ScaleSearch(
         motion_scale, observation_scale, motion_scales, motion_objective, observation_scales,
-        observation_objective)
+        observation_objective, motion_dropped, observation_dropped)

@@ -318,16 +318,21 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
                   obs is not None, int(used.sum()))
 
 
-def _best_run(objective) -> int:
+def _best_run(objective, dropped) -> int:
     """Index of the filter run with the highest log marginal likelihood.
 
     EM raises the marginal likelihood while the E-step's association holds; when it did not
     converge, the settings whose own filter run scored best are returned. The first run used
     the starting settings, whose sensor fields (range, field of view, detection) are guesses
-    no M-step has seen: it is never the one returned.
+    no M-step has seen: it is never the one returned. Runs that dropped births (``dropped``,
+    the map was full) compete only when every run did: their score counts unmapped trees
+    again at each sighting (``noise_scale``).
     """
     scores = np.asarray(objective, np.float64)
     scores[0] = -np.inf if len(scores) > 1 else scores[0]
+    full = np.asarray(dropped) > 0
+    if np.any(np.isfinite(scores) & ~full):
+        scores = np.where(full, -np.inf, scores)
     if not np.any(np.isfinite(scores)):
         return len(scores) - 1
     return int(np.argmax(np.where(np.isfinite(scores), scores, -np.inf)))
@@ -353,7 +358,7 @@ def _progress_line(iteration: int, objective: float, typical, change: float) -> 
 
 
 def _scale_search(config, key, params, controls, observations, start, scales, last: _MStep,
-                  progress, known_objective=None):
+                  progress, known_objective=None, known_dropped=None):
     """``search_noise_scales`` over the groups EM fitted (an unfitted group's grid is (1,)):
     (params, ``ScaleSearch``, a clause for the verdict)."""
     unit = (1.0,)
@@ -361,11 +366,15 @@ def _scale_search(config, key, params, controls, observations, start, scales, la
         config, key, params, controls, observations, jnp.asarray(start, params.rot1_noise.dtype),
         motion_scales=scales if last.motion_fitted else unit,
         observation_scales=scales if last.observation_fitted else unit,
-        known_objective=known_objective)
+        known_objective=known_objective, known_dropped=known_dropped)
     line = (f"likelihood over noise scales: motion {found.motion_scales.tolist()} -> "
             f"{np.round(found.motion_objective, 1).tolist()}, observation "
             f"{found.observation_scales.tolist()} -> "
             f"{np.round(found.observation_objective, 1).tolist()}")
+    if np.any(found.motion_dropped) or np.any(found.observation_dropped):
+        line += (f" (births dropped, map full: motion {found.motion_dropped.tolist()}, "
+                 f"observation {found.observation_dropped.tolist()}; only runs that dropped "
+                 f"none compete when there is one)")
     if progress is not None:
         progress(f"calibration: {line}")
     if found.motion_scale == 1.0 and found.observation_scale == 1.0:
@@ -407,6 +416,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         dead-reckoning to filter ATE was 1.63 with it against 2.19 without.
       scale_search: after EM, multiply the motion and then the observation noise by the
         multipliers in ``scales`` (must contain 1) of highest filter log marginal likelihood
+        among the runs whose map never overflowed, when there is one
         (``noise_scale.search_noise_scales``, EM's key; only the groups EM fitted): EM on a
         poor association shrinks the noise. ``converged`` and ``relative_std`` still describe
         EM's own estimate. Costs 2 len(scales) - 1 more filter runs (one fewer when EM did
@@ -430,7 +440,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         return params, CalibrationInfo(0, np.zeros(0), np.zeros(0), np.zeros((0, 4)), {}, {},
                                        {}, False, "not calibrated: too few observations",
                                        (warning,))
-    objective, costs, typical, evaluated, warnings = [], [], [], [], []
+    objective, dropped, costs, typical, evaluated, warnings = [], [], [], [], [], []
     samples, values = {}, {}
     converged, last, m_steps = False, None, []
     controls = jnp.asarray(log.controls, dtype)
@@ -440,6 +450,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         final, trace = run_filter(config, key, params, controls, observations,
                                   jnp.asarray(log.start, dtype), record_lineage=True)
         objective.append(float(np.sum(np.asarray(trace.log_evidence))))
+        dropped.append(int(np.sum(np.asarray(trace.num_dropped_births))))
         evaluated.append(params)
         step = _m_step(config, params, log, odometry,
                        _best_history(trace.lineage, final.log_weight), done, calibrate_sensor,
@@ -463,11 +474,11 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         if change < tol:
             converged = True
             break
-    chosen, known_objective, source = "", None, last  # source: the M-step behind ``params``
+    chosen, known, source = "", (None, None), last  # source: the M-step behind ``params``
     if not converged:
-        best = _best_run(objective)
+        best = _best_run(objective, dropped)
         source = m_steps[best - 1] if 1 <= best <= len(m_steps) else None
-        params, known_objective = evaluated[best], objective[best]
+        params, known = evaluated[best], (objective[best], dropped[best])
         values = {name: _plain(getattr(params, name)) for name in values}
         chosen = (f"; returned iteration {best + 1}'s settings (the highest log marginal "
                   f"likelihood of the {len(evaluated)} filter runs)")
@@ -475,8 +486,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     if scale_search and source is not None and (source.motion_fitted
                                                  or source.observation_fitted):
         params, found, note = _scale_search(config, key, params, controls, observations,
-                                            log.start, scales, source, progress,
-                                            known_objective)
+                                            log.start, scales, source, progress, *known)
         values.update({name: _plain(getattr(params, name)) for name in
                        (MOTION_FIELDS if source.motion_fitted else ())
                        + (OBSERVATION_FIELDS + ("new_landmark_log_offset",)

@@ -116,13 +116,13 @@ def test_search_scores_are_single_filter_runs_and_each_candidate_runs_once(monke
     controls, obs, poses = _log()
     key, params = jax.random.PRNGKey(3), _true_params()
     calls = []
-    original = ns.log_likelihood
+    original = ns.run_score
 
     def counted(config, key, candidate, *args):
         calls.append(float(candidate.range_std_floor / params.range_std_floor))
         return original(config, key, candidate, *args)
 
-    monkeypatch.setattr(ns, "log_likelihood", counted)
+    monkeypatch.setattr(ns, "run_score", counted)
     _, found = ns.search_noise_scales(CONFIG, key, params, controls, obs, poses[0],
                                       motion_scales=(1.0, 2.0), observation_scales=(1.0, 4.0))
     # 2 motion candidates, then 1 new observation candidate (its x1 is the motion choice).
@@ -136,9 +136,13 @@ def test_search_scores_are_single_filter_runs_and_each_candidate_runs_once(monke
     calls.clear()
     _, again = ns.search_noise_scales(CONFIG, key, params, controls, obs, poses[0],
                                       motion_scales=(1.0, 2.0), observation_scales=(1.0, 4.0),
-                                      known_objective=found.motion_objective[0])
+                                      known_objective=found.motion_objective[0],
+                                      known_dropped=found.motion_dropped[0])
     assert len(calls) == 2  # the known x1 is not run again
     chex.assert_trees_all_equal(again, found)
+    with pytest.raises(ValueError, match="known_objective and known_dropped go together"):
+        ns.search_noise_scales(CONFIG, key, params, controls, obs, poses[0],
+                               known_objective=found.motion_objective[0])
 
 
 def test_search_widens_a_noise_that_is_too_narrow():
@@ -175,6 +179,52 @@ def test_search_keeps_the_true_noise_near_one():
 ])
 def test_best_scale(objective, expected):
     assert ns.best_scale(np.array([1.0, 2.0, 4.0, 8.0]), np.array(objective)) == expected
+
+
+@pytest.mark.parametrize("objective, dropped, expected", [
+    ([9.0, 1.0, 8.0, 2.0], [5, 0, 3, 0], 8.0),  # the most likely of the runs that dropped none
+    ([9.0, 1.0, 8.0, 2.0], [5, 1, 3, 2], 1.0),  # every run dropped births: likelihood alone
+    ([9.0, 1.0, 8.0, 2.0], [0, 0, 0, 0], 1.0),  # none dropped: likelihood alone
+    ([9.0, np.nan, 8.0, 2.0], [5, 0, 3, 3], 1.0),  # the only full-free run is not finite
+])
+def test_best_scale_prefers_runs_whose_map_never_overflowed(objective, dropped, expected):
+    assert ns.best_scale(np.array([1.0, 2.0, 4.0, 8.0]), np.array(objective),
+                         np.array(dropped)) == expected
+
+
+def test_search_ranks_runs_that_dropped_births_last(monkeypatch):
+    """Scores stubbed (the rule, not the filter): narrow observation noise scores higher but
+    overflows the map below x4; the search takes x4 and records what each run dropped."""
+    controls, obs, poses = _log()
+    params = _true_params()
+
+    def stub(config, key, candidate, *args):
+        scale = float(candidate.range_std_floor / params.range_std_floor)
+        motion = float(candidate.rot1_noise[2] / params.rot1_noise[2])
+        return ns.RunScore(100.0 - scale - motion, 1000 if scale < 4.0 else 0)
+
+    monkeypatch.setattr(ns, "run_score", stub)
+    _, found = ns.search_noise_scales(CONFIG, jax.random.PRNGKey(0), params, controls, obs,
+                                      poses[0])
+    assert found.motion_scale == 1.0  # every motion candidate (at s_o = 1) overflowed
+    np.testing.assert_array_equal(found.motion_dropped, [1000, 1000, 1000, 1000])
+    assert found.observation_scale == 4.0
+    np.testing.assert_array_equal(found.observation_dropped, [1000, 1000, 0, 0])
+
+
+def test_run_score_counts_the_births_a_full_map_dropped():
+    """A map of 6 slots for a loop through 30 trees: births are dropped, and ``run_score``
+    reports the trace's sum; the likelihood is ``log_likelihood``'s."""
+    controls, obs, poses = _log()
+    small = FilterConfig(num_particles=16, max_landmarks=6, max_obs=10)
+    key = jax.random.PRNGKey(0)
+    score = ns.run_score(small, key, _true_params(), controls, obs, poses[0])
+    _, trace = run_filter(small, key, _true_params(), controls, obs, poses[0])
+    assert score.dropped_births == int(np.sum(np.asarray(trace.num_dropped_births))) > 0
+    assert score.log_likelihood == ns.log_likelihood(small, key, _true_params(), controls,
+                                                     obs, poses[0])
+    assert ns.run_score(CONFIG, key, _true_params(), controls, obs,
+                        poses[0]).dropped_births == 0
 
 
 @pytest.mark.parametrize("bad", [[], [0.0, 1.0], [1.0, np.nan], [[1.0]], [2.0, 4.0]])

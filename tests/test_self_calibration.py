@@ -377,3 +377,14 @@ def test_bad_scales_fail_before_any_filter_run(bad, monkeypatch):
     with pytest.raises(ValueError, match="scales must be a non-empty 1-D .* contains 1"):
         sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0],
                             scales=bad)
+
+
+@pytest.mark.parametrize("objective, dropped, expected", [
+    ([50.0, 1.0, 9.0, 3.0], [0, 0, 0, 0], 2),   # the starting run never wins; then the best
+    ([50.0, 1.0, 9.0, 3.0], [0, 0, 7, 0], 3),   # a run whose map overflowed loses to one
+                                                # that did not, whatever its score
+    ([50.0, 1.0, 9.0, 3.0], [0, 4, 7, 2], 2),   # all EM runs overflowed: the score alone
+    ([50.0, np.nan, 9.0, 3.0], [0, 0, 7, 5], 2),  # the only run that kept room is not finite
+])
+def test_best_run_ranks_overflowed_runs_last(objective, dropped, expected):
+    assert sc._best_run(objective, dropped) == expected
