@@ -50,10 +50,10 @@ A run whose map overflowed is not a fair candidate. An observation no landmark e
 credited as a new landmark whether or not a free slot takes it; when the map is full its
 birth is dropped, the tree stays unmapped, and its next sighting is credited as new again:
 the score of such a run counts the same trees over and over, and the narrower the noise, the
-more trees it splits and the earlier the map fills. On Victoria Park with EM's settings
-(320 slots, twice the documented ~150 trees) the observation scales x1, 2, 4 all overflowed
-(428 k, 353 k and 334 k births dropped over the 100 particles) and outscored x8, the first
-that did not (log likelihood 39.2 k, 29.1 k, 11.5 k against 7.2 k). So a stage ranks its
+more trees it splits and the earlier the map fills. On Victoria Park (320 slots, twice the
+documented ~150 trees; motion x8) the observation scales x1, 2 and 4 all overflowed (223 k,
+355 k and 199 k births dropped, summed over the 100 particles) and outscored x8, the only one
+that did not (log likelihood +70.8 k, +50.4 k and +46.1 k against +34.9 k). So a stage ranks its
 candidates by likelihood among those whose run dropped no birth (``best_scale``), and only
 when every candidate dropped births by likelihood alone (as before: nothing better is
 known, and the run's warnings say the map was full).
