@@ -127,9 +127,11 @@ def _inliers(positions, together, older, radius, newer_pair, older_pair, tree=No
     (H, G) (-1: none), summed inlier distance (H,) [m], angle (H,) and translation (H, 2).
 
     A member lands on the nearest landmark older than it within ``radius`` of its moved
-    position. The candidates are the landmarks within ``radius`` (a k-d tree over
-    ``positions``, ``tree``; k is the most any moved member has within the radius, so the
-    nearest older one is always among them): memory (H, G, k), not (H, G, L)."""
+    position (the lowest id among equally near ones). The candidates are the landmarks a
+    k-d tree over ``positions`` (``tree``) finds within a slightly larger radius (k is the
+    most any moved member has there, so the nearest older one is always among them); their
+    distances are then computed as hypot(dx, dy) and tested < ``radius``. Memory (H, L)
+    int64 (the members' order), (H, G, k) floats, not (H, G, L)."""
     tree = scipy.spatial.cKDTree(positions) if tree is None else tree
     angle, shift = rigid_from_pairs(positions[newer_pair], positions[older_pair])
     in_group = together[newer_pair[:, 0]] | together[newer_pair[:, 1]]  # (H, L)
@@ -141,18 +143,20 @@ def _inliers(positions, together, older, radius, newer_pair, older_pair, tree=No
     points = moved[real]  # (M, 2) the real members' moved positions
     lands = np.full(member.shape, -1)
     gap = np.full(member.shape, np.inf)
-    neighbours = int(np.max(tree.query_ball_point(points, radius, return_length=True)))
+    reach = radius * (1.0 + 1e-9) + 1e-12  # covers the tree's rounding of the distance
+    neighbours = int(np.max(tree.query_ball_point(points, reach, return_length=True)))
     if neighbours > 0:
-        bound = np.nextafter(radius, np.inf)  # the query keeps < bound; the test below is < r
-        distance, index = tree.query(points, k=neighbours, distance_upper_bound=bound)
-        distance, index = distance.reshape(len(points), -1), index.reshape(len(points), -1)
-        found = index < len(positions)  # (M, k)
+        _, index = tree.query(points, k=neighbours, distance_upper_bound=reach)
+        index = index.reshape(len(points), -1)  # (M, k), len(positions) where none
+        found = index < len(positions)
         index = np.where(found, index, 0)
+        distance = np.hypot(points[:, 0, None] - positions[index, 0],
+                            points[:, 1, None] - positions[index, 1])  # (M, k)
         candidate = found & older[index, member[real][:, None]] & (distance < radius)
         distance = np.where(candidate, distance, np.inf)
-        nearest = np.argmin(distance, -1)  # sorted by distance: the first older one
-        hit = np.take_along_axis(distance, nearest[:, None], -1)[:, 0]
-        lands[real] = np.where(np.isfinite(hit), index[np.arange(len(points)), nearest], -1)
+        hit = distance.min(-1)  # (M,)
+        nearest = np.where(candidate & (distance == hit[:, None]), index, len(positions))
+        lands[real] = np.where(np.isfinite(hit), nearest.min(-1), -1)
         gap[real] = hit
     hits = np.sort(lands, axis=1)
     first_of_value = np.ones_like(hits, bool)
@@ -178,8 +182,8 @@ def find_revisits(positions, obs_step, obs_landmark, fraction: float = 0.5,
       min_inliers: the fewest distinct older landmarks the group must land on (the two that
         define the transform included).
       candidates: most candidates returned.
-      chunk: hypotheses scored at once (memory (chunk, L) booleans and (chunk, G, k) floats,
-        G the largest group, k the most landmarks within the radius of a moved member).
+      chunk: hypotheses scored at once (memory (chunk, L) int64 and (chunk, G, k) floats, G
+        the largest group, k the most landmarks within the radius of a moved member).
     """
     if min_inliers < 2:
         raise ValueError(f"min_inliers must be >= 2 (the two landmarks that define the "
@@ -190,8 +194,8 @@ def find_revisits(positions, obs_step, obs_landmark, fraction: float = 0.5,
         return []
     together = covisible_pairs(obs_step, obs_landmark, count)
     radius = fraction * covisible_distance(positions, together)
-    if not np.isfinite(radius):
-        return []
+    if not (np.isfinite(radius) and radius > 0):  # two co-visible landmarks at one point:
+        return []                                 # nothing lies within a zero radius
     first, last = landmark_spans(obs_step, obs_landmark, count)
     seen = last >= 0
     older = (last[:, None] < first[None]) & seen[:, None] & seen[None]  # older[a, b]

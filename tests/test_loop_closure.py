@@ -104,6 +104,10 @@ def test_find_revisits_edges_and_bad_input():
     assert find_revisits(np.zeros((0, 2)), np.zeros(0, int), np.zeros(0, int)) == []
     # No two landmarks ever seen together: d_min undefined, nothing to register.
     assert find_revisits(np.eye(2), [0, 1], [0, 1]) == []
+    # Two landmarks seen together at one point: d_min = 0, the radius is 0 and nothing lies
+    # within it (no error from the empty length window).
+    assert find_revisits(np.array([[1.0, 2.0], [1.0, 2.0], [5.0, 2.0]]), [0, 0, 1, 1],
+                         [0, 1, 1, 2]) == []
     positions, step, landmark, _ = revisit_map()
     with pytest.raises(ValueError, match="min_inliers"):
         find_revisits(positions, step, landmark, min_inliers=1)
@@ -317,3 +321,66 @@ def test_a_base_still_falling_is_not_tested_against():
     assert not _settled(SimpleNamespace(converged=False, cost=np.array([9.0, 9.0 - 2 * tail])),
                         limit)
     assert not _settled(SimpleNamespace(converged=False, cost=np.array([9.0])), limit)
+
+
+def reference_lands(positions, together, older, radius, newer_pair, older_pair):
+    """Plain-loop float64 reference of ``_inliers``: per hypothesis, the landmark each group
+    member (ascending ids) lands on (-1: none; the nearest older one within ``radius``, the
+    lowest id among equally near ones) and the summed inlier distance."""
+    lands, spread = [], []
+    for (b1, b2), (a1, a2) in zip(newer_pair, older_pair):
+        da, db = positions[a2] - positions[a1], positions[b2] - positions[b1]
+        angle = np.arctan2(da[1], da[0]) - np.arctan2(db[1], db[0])
+        rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        shift = (positions[a1] + positions[a2]) / 2 - rot @ (positions[b1] + positions[b2]) / 2
+        row, total = [], 0.0
+        for g in range(len(positions)):
+            if not (g in (b1, b2) or together[b1, g] or together[b2, g]):
+                continue
+            moved = rot @ positions[g] + shift
+            best, where = np.inf, -1
+            for a in range(len(positions)):
+                gap = float(np.hypot(moved[0] - positions[a, 0], moved[1] - positions[a, 1]))
+                if older[a, g] and gap < radius and gap < best:
+                    best, where = gap, a
+            row.append(where)
+            total += best if where >= 0 else 0.0
+        lands.append(row)
+        spread.append(total)
+    return lands, np.array(spread)
+
+
+@pytest.mark.parametrize("fraction", [0.5, 2.0, 4.0])
+def test_inliers_per_hypothesis_against_the_plain_loop_reference(fraction):
+    """Every hypothesis's landings and summed inlier distance equal the reference's, on
+    random maps where three landmarks are exact copies of others (equally near candidates:
+    the lowest id wins, as the reference's strict '<' keeps the first)."""
+    from jaxslam.landmark_merge import covisible_distance
+    from jaxslam.loop_closure import _hypotheses, _inliers
+    ties = 0
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        positions = rng.uniform(0, 12, (16, 2))
+        positions[[13, 14, 15]] = positions[[4, 6, 1]]  # never seen with their originals
+        # Step t sees 2t, 2t + 1, 2t + 2 (mod 13); the copies 13, 14, 15 are seen once, at
+        # steps 0, 1, 2, so a copy and its original are both older than later members.
+        landmark = np.concatenate([[2 * t % 13, (2 * t + 1) % 13, (2 * t + 2) % 13]
+                                   + ([13 + t] if t < 3 else []) for t in range(8)])
+        step = np.concatenate([[t] * (4 if t < 3 else 3) for t in range(8)])
+        together = covisible_pairs(step, landmark, 16)
+        radius = fraction * covisible_distance(positions, together)
+        first, last = landmark_spans(step, landmark, 16)
+        older = (last[:, None] < first[None]) & (last >= 0)[:, None] & (last >= 0)[None]
+        newer_pair, older_pair = _hypotheses(positions, together, older, radius)
+        assert len(newer_pair) > 0
+        distinct, member, lands, spread, _, _ = _inliers(positions, together, older, radius,
+                                                         newer_pair, older_pair)
+        want_lands, want_spread = reference_lands(positions, together, older, radius,
+                                                  newer_pair, older_pair)
+        for h, want in enumerate(want_lands):
+            np.testing.assert_array_equal(lands[h][member[h] >= 0], want)
+            assert distinct[h] == len({a for a in want if a >= 0})
+        ties += int(np.isin(lands, [4, 6, 1]).sum())  # landings on an original with a copy
+        # Same formula (hypot of the same moved point): equal to rounding of the sum.
+        np.testing.assert_allclose(spread, want_spread, rtol=1e-12, atol=1e-12)
+    assert ties > 0  # where the tie rule applies (a max-id tie rule fails this test)
