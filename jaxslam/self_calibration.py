@@ -324,9 +324,10 @@ def _best_run(objective, dropped) -> int:
     EM raises the marginal likelihood while the E-step's association holds; when it did not
     converge, the settings whose own filter run scored best are returned. The first run used
     the starting settings, whose sensor fields (range, field of view, detection) are guesses
-    no M-step has seen: it is never the one returned. Runs that dropped births (``dropped``,
-    the map was full) compete only when every run did: their score counts unmapped trees
-    again at each sighting (``noise_scale``).
+    no M-step has seen: it is never the one returned. Runs that dropped births (the map was
+    full) compete only when every other run did too (or scored no finite value): their score
+    counts unmapped trees again at each sighting (``noise_scale``), but some run's settings
+    must be returned. objective (R,), dropped (R,) births each run dropped.
     """
     scores = np.asarray(objective, np.float64)
     scores[0] = -np.inf if len(scores) > 1 else scores[0]
@@ -374,7 +375,7 @@ def _scale_search(config, key, params, controls, observations, start, scales, la
     if np.any(found.motion_dropped) or np.any(found.observation_dropped):
         line += (f" (births dropped, map full: motion {found.motion_dropped.tolist()}, "
                  f"observation {found.observation_dropped.tolist()}; only runs that dropped "
-                 f"none compete when there is one)")
+                 f"none compete, and a stage where every run dropped births keeps x1)")
     if progress is not None:
         progress(f"calibration: {line}")
     if found.motion_scale == 1.0 and found.observation_scale == 1.0:
@@ -416,9 +417,9 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         dead-reckoning to filter ATE was 1.63 with it against 2.19 without.
       scale_search: after EM, multiply the motion and then the observation noise by the
         multipliers in ``scales`` (must contain 1) of highest filter log marginal likelihood
-        among the runs whose map never overflowed, when there is one
-        (``noise_scale.search_noise_scales``, EM's key; only the groups EM fitted): EM on a
-        poor association shrinks the noise. ``converged`` and ``relative_std`` still describe
+        among the runs whose map never overflowed (a stage where every run overflowed keeps
+        1; ``noise_scale.search_noise_scales``, EM's key; only the groups EM fitted): EM on
+        a poor association shrinks the noise. ``converged`` and ``relative_std`` still describe
         EM's own estimate. Costs 2 len(scales) - 1 more filter runs (one fewer when EM did
         not converge: its best run is reused).
       progress: optional callable(str) told of each iteration in one line.
@@ -480,8 +481,11 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         source = m_steps[best - 1] if 1 <= best <= len(m_steps) else None
         params, known = evaluated[best], (objective[best], dropped[best])
         values = {name: _plain(getattr(params, name)) for name in values}
+        kept = int(np.sum(np.asarray(dropped[1:]) == 0))
+        among = (f", among the {kept} whose map never overflowed"
+                 if 0 < kept < len(evaluated) - 1 else "")
         chosen = (f"; returned iteration {best + 1}'s settings (the highest log marginal "
-                  f"likelihood of the {len(evaluated)} filter runs)")
+                  f"likelihood of the {len(evaluated)} filter runs{among})")
     found = None
     if scale_search and source is not None and (source.motion_fitted
                                                  or source.observation_fitted):
