@@ -23,8 +23,9 @@ Motion (Geiser et al. 2023, Eq. 1, odometry rot1-trans-rot2)
   Pose-space motion covariance R = J diag(std^2) J^T with J = d g / d (r1, t, r2) at the
   measured odometry and the particle's previous heading:
       J = [[-t sin h, cos h, 0], [t cos h, sin h, 0], [1, 0, 1]],  h = theta + r1.
-  [jaxslam] ``pose_jitter`` * I is added to R, with pose_jitter = 1e-5 max(diag R) + 1e-14
-  (``proposal.pose_jitter``): R is singular at t = 0 and badly conditioned for tiny moves.
+  [jaxslam] ``pose_jitter`` * I is added to R, with pose_jitter = 100 eps max(R_xx, R_yy) +
+  1e-14, eps the float64 epsilon (``proposal.pose_jitter``): R is singular at t = 0 and badly
+  conditioned for tiny moves.
   Textbook: jitter 0.
   Exact motion density over the pose (used by the importance weight): invert x -> (r1, t, r2)
   (r1 = atan2 of the displacement in the previous frame, 0 when t < min_translation;
@@ -147,7 +148,7 @@ def motion_pose_covariance(pose, odometry, params, pose_jitter=POSE_JITTER):
     jac = motion_jacobian(pose, odometry)
     cov = jac @ np.diag(odometry_std(odometry, params) ** 2) @ jac.T
     if pose_jitter == "relative":
-        pose_jitter = 1e-5 * np.max(np.diag(cov)) + 1e-14
+        pose_jitter = 100.0 * np.finfo(np.float64).eps * max(cov[0, 0], cov[1, 1]) + 1e-14
     return cov + pose_jitter * np.eye(3)
 
 

@@ -191,7 +191,8 @@ def test_observation_proposal_vs_reference(params):
     x_hat, prior_cov = ref_prediction()
     pose_cov = proposal.motion_pose_covariance(jnp.asarray(PREV), jnp.asarray(CONTROL), params,
                                                "odometry")
-    jitter = 1e-5 * np.max(np.diag(prior_cov)) + 1e-14  # proposal.pose_jitter's rule
+    jitter = (100 * np.finfo(np.float64).eps * max(prior_cov[0, 0], prior_cov[1, 1])
+              + 1e-14)  # proposal.pose_jitter's rule (float64)
     np.testing.assert_allclose(np.asarray(pose_cov), prior_cov + jitter * np.eye(3), rtol=1e-9,
                                atol=1e-15)
     landmark_cov = jnp.tile(jnp.asarray([LANDMARK_COV, 0.0, LANDMARK_COV]), (3, 1))
