@@ -6,11 +6,13 @@ The filter is compiled by an untimed first call (same shapes as the calibration'
 one run and the whole calibration are timed back to back in this process, and the ratio is
 calibration / run. Everything else a calibration does, compiles included, counts against it:
 a user calls ``calibrate_params`` once, in a fresh process. Logs: a held-out simulated loop
-(the ``experiments/self_calibration.py`` generator: 250 steps, 40 trees) and UTIAS MRCLAM
-robot 1 (3,809 steps) when its folder is given.
+(the ``experiments/self_calibration.py`` generator: 250 steps, 40 trees), UTIAS MRCLAM
+robot 1 (3,809 steps) and Victoria Park (7,230 scans; its calibration takes 8-15 minutes)
+when their folders are given.
 
     python benchmarks/calibration.py [--particles 100] [--stages]
     python benchmarks/calibration.py --mrclam DIR     # or JAXSLAM_MRCLAM=DIR; --skip-mrclam
+    python benchmarks/calibration.py --only victoria_park --victoria-park DIR
 
 How to read a line:
 
@@ -53,6 +55,7 @@ import time
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
@@ -105,9 +108,11 @@ def _timed_stages(totals):
     return restore
 
 
-def bench(name, config, controls, obs, start, stages: bool = False):
+def bench(name, config, controls, obs, start, stages: bool = False, params=None):
+    """Print one log's line (module docstring); ``params``: the calibration's starting point
+    (default ``starting_params(config)``)."""
     key = jax.random.PRNGKey(0)
-    params = starting_params(config)
+    params = starting_params(config) if params is None else params
     controls = jnp.asarray(controls, jnp.float32)
     start = jnp.asarray(start, jnp.float32)
     first, _ = _time(lambda: run_filter(config, key, params, controls, obs, start,
@@ -140,26 +145,68 @@ def main(argv=None):
                         help="folder of the UTIAS MRCLAM data set 1 files (default: "
                         "$JAXSLAM_MRCLAM; without either, MRCLAM is skipped)")
     parser.add_argument("--skip-mrclam", action="store_true")
+    parser.add_argument("--victoria-park", type=pathlib.Path,
+                        default=os.environ.get("JAXSLAM_VICTORIA_PARK"),
+                        help="folder of the Victoria Park files (default: "
+                        "$JAXSLAM_VICTORIA_PARK; without either, Victoria Park is skipped: "
+                        "its calibration takes 10-15 minutes)")
+    parser.add_argument("--only", choices=["simulated", "mrclam", "victoria_park"],
+                        nargs="+", help="run only these logs")
     parser.add_argument("--stages", action="store_true",
                         help="print the seconds spent in each stage of the calibration")
     args = parser.parse_args(argv)
     from experiments.self_calibration import make_log, true_params
 
-    controls, obs, poses, _ = make_log(jax.random.PRNGKey(7), true_params(2.0, 2.0), 0.0)
-    bench("simulated loop", FilterConfig(num_particles=args.particles, max_landmarks=96,
-                                         max_obs=12), controls, obs, poses[0], args.stages)
-    if args.skip_mrclam:
-        return
-    if args.mrclam is None or not pathlib.Path(args.mrclam).is_dir():
-        print(f"MRCLAM robot 1: skipped (no data folder: give --mrclam DIR or set "
-              f"JAXSLAM_MRCLAM; got {args.mrclam})")
-        return
-    from jaxslam.datasets.mrclam import load_mrclam
+    only = set(args.only or ("simulated", "mrclam", "victoria_park"))
+    if "simulated" in only:
+        controls, obs, poses, _ = make_log(jax.random.PRNGKey(7), true_params(2.0, 2.0), 0.0)
+        bench("simulated loop", FilterConfig(num_particles=args.particles, max_landmarks=96,
+                                             max_obs=12), controls, obs, poses[0], args.stages)
+    if "mrclam" in only and not args.skip_mrclam:
+        if args.mrclam is None or not pathlib.Path(args.mrclam).is_dir():
+            print(f"MRCLAM robot 1: skipped (no data folder: give --mrclam DIR or set "
+                  f"JAXSLAM_MRCLAM; got {args.mrclam})")
+        else:
+            from jaxslam.datasets.mrclam import load_mrclam
 
-    log = load_mrclam(pathlib.Path(args.mrclam), 1)
-    bench("MRCLAM robot 1", FilterConfig(num_particles=args.particles, max_landmarks=64,
-                                         max_obs=int(log.obs_z.shape[1])),
-          log.controls, log.observations(), log.initial_pose, args.stages)
+            log = load_mrclam(pathlib.Path(args.mrclam), 1)
+            bench("MRCLAM robot 1", FilterConfig(num_particles=args.particles, max_landmarks=64,
+                                                 max_obs=int(log.obs_z.shape[1])),
+                  log.controls, log.observations(), log.initial_pose, args.stages)
+    if "victoria_park" in only:
+        if args.victoria_park is None or not pathlib.Path(args.victoria_park).is_dir():
+            print(f"Victoria Park: skipped (no data folder: give --victoria-park DIR or set "
+                  f"JAXSLAM_VICTORIA_PARK; got {args.victoria_park})")
+        else:
+            config, controls, obs, start, params = victoria_park_case(args.victoria_park,
+                                                                       args.particles)
+            bench("Victoria Park", config, controls, obs, start, args.stages, params)
+
+
+def victoria_park_case(folder, num_particles):
+    """(config, controls, observations, start pose, starting Params) of the whole Victoria
+    Park log as ``experiments/victoria_park.py`` calibrates it: trunks detected in every
+    scan, controls corrected by the laser-only steering bias, 320 landmark slots, the
+    calibrated settings set's fixed values as the starting point."""
+    import dataclasses
+
+    from experiments import victoria_park_pipeline as vps
+    from jaxslam.datasets import victoria_park as vpm
+
+    data = vpm.load_victoria_park(folder)
+    settings = vps.load_settings("calibrated")
+    config = vps.settings_config(settings, num_particles=num_particles, max_landmarks=320)
+    scans = vpm.victoria_park_log(data)
+    steps = data.laser_time.shape[0]
+    obs = vps.detect_scans(scans.scan_ranges, scans.scan_angles, config.max_obs)
+    bias = vps.steering_bias_of(settings, data, obs)
+    log = vps.victoria_park_robot_log(data, obs, bias, steps)
+    obs = log.observations()
+    config = dataclasses.replace(config, max_obs=int(obs.z.shape[1]),
+                                 motion_model=log.motion_model)
+    start = np.zeros(3) if log.initial_pose is None else np.asarray(log.initial_pose)
+    return (config, np.asarray(log.controls), obs, start,
+            vps.settings_params(settings, config))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,39 @@
+"""benchmarks/calibration.py's choice of logs: ``--only`` runs just the named ones, and a log
+whose data folder is missing is skipped with a line that names the option to give. The timings
+themselves are the script's own job (issue 17; docs/results.md, calibration_time): a real run
+takes from 30 s (the simulated loop) to 15 minutes (Victoria Park)."""
+import importlib.util
+import pathlib
+
+SCRIPT = pathlib.Path(__file__).resolve().parent.parent / "benchmarks" / "calibration.py"
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("calibration_benchmark", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_missing_data_folders_are_skipped_by_name(tmp_path, capsys, monkeypatch):
+    benchmark = _load()
+    calls = []
+    monkeypatch.setattr(benchmark, "bench", lambda *args, **kwargs: calls.append(args[0]))
+    missing = tmp_path / "absent"
+    benchmark.main(["--only", "mrclam", "victoria_park", "--mrclam", str(missing),
+                    "--victoria-park", str(missing)])
+    out = capsys.readouterr().out
+    assert calls == []  # the simulated loop was not asked for, the others have no data
+    assert "MRCLAM robot 1: skipped" in out and "--mrclam DIR" in out
+    assert "Victoria Park: skipped" in out and "--victoria-park DIR" in out
+    assert str(missing) in out
+
+
+def test_only_simulated_runs_the_simulated_loop_alone(capsys, monkeypatch):
+    benchmark = _load()
+    calls = []
+    monkeypatch.setattr(benchmark, "bench", lambda *args, **kwargs: calls.append(args[0]))
+    monkeypatch.setenv("JAXSLAM_MRCLAM", "/nonexistent")
+    benchmark.main(["--only", "simulated", "--particles", "8"])
+    assert calls == ["simulated loop"]
+    assert "skipped" not in capsys.readouterr().out
