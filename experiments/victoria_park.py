@@ -280,7 +280,8 @@ def main():
                     for name in settings.calibrated if name != "radius_noise"},
             radius_noise=calibration.radius_noise, radius_samples=calibration.radius_samples,
             online_rmse=online.rmse, num_trees=calibration.num_trees,
-            objective=np.asarray(info.objective).tolist())
+            objective=np.asarray(info.objective).tolist(),
+            dropped_births=np.asarray(info.dropped_births).tolist())
         print("calibration:", numbers["calibration"], flush=True)
         from jaxslam.pipeline import save_params
 

@@ -108,6 +108,9 @@ class CalibrationInfo(NamedTuple):
       warnings: tuple of plain-word warnings (data too sparse, a group kept at its start).
       noise_scales: ``noise_scale.ScaleSearch`` of the likelihood search after EM
         (``scale_search=True`` and something fitted), else None (the verdict says which).
+      dropped_births: (iterations,) int64 births each iteration's filter run dropped because
+        its map was full (summed over particles and steps); a run with any is passed over
+        when the best run is chosen (``_best_run``), unless every run had some.
     """
 
     iterations: int
@@ -121,6 +124,7 @@ class CalibrationInfo(NamedTuple):
     verdict: str
     warnings: tuple
     noise_scales: ScaleSearch | None = None
+    dropped_births: np.ndarray | None = None
 
 
 def starting_params(config: FilterConfig | None = None, dtype=jnp.float32, **overrides) -> Params:
@@ -351,8 +355,11 @@ def _fit_warnings(last: _MStep | None, steps: int) -> list[str]:
     return out
 
 
-def _progress_line(iteration: int, objective: float, typical, change: float) -> str:
-    return (f"calibration iteration {iteration}: log marginal likelihood {objective:.1f}, "
+def _progress_line(iteration: int, objective: float, typical, change: float,
+                   dropped: int = 0) -> str:
+    full = (f", map full: {dropped} births dropped (this run's settings will not be "
+            f"returned unless every run's map overflowed)" if dropped else "")
+    return (f"calibration iteration {iteration}: log marginal likelihood {objective:.1f}{full}, "
             f"typical stds heading {typical[0]:.4g} rad, translation {typical[1]:.4g} m, "
             f"range {typical[2]:.4g} m, bearing {typical[3]:.4g} rad (largest change "
             f"{change:.1%})")
@@ -440,7 +447,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                    f"{MIN_SIGHTINGS} or more times: the given settings are used")
         return params, CalibrationInfo(0, np.zeros(0), np.zeros(0), np.zeros((0, 4)), {}, {},
                                        {}, False, "not calibrated: too few observations",
-                                       (warning,))
+                                       (warning,), None, np.zeros(0, np.int64))
     objective, dropped, costs, typical, evaluated, warnings = [], [], [], [], [], []
     samples, values = {}, {}
     converged, last, m_steps = False, None, []
@@ -471,7 +478,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         new_typical = typical_stds(params, odometry, z_range)
         change = np.max(np.abs(new_typical / typical[-1] - 1.0))
         if progress is not None:
-            progress(_progress_line(done, objective[-1], new_typical, change))
+            progress(_progress_line(done, objective[-1], new_typical, change, dropped[-1]))
         if change < tol:
             converged = True
             break
@@ -507,4 +514,5 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     relative_std = {group: 1.0 / np.sqrt(2.0 * n) for group, n in samples.items()}
     return params, CalibrationInfo(done, np.asarray(objective), np.asarray(costs),
                                    np.asarray(typical), values, relative_std, samples,
-                                   converged, verdict, tuple(warnings), found)
+                                   converged, verdict, tuple(warnings), found,
+                                   np.asarray(dropped, np.int64))

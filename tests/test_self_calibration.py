@@ -63,6 +63,9 @@ def test_recovers_the_noise_groups_within_stated_intervals():
     np.testing.assert_allclose(fitted[:2], truth[:2], rtol=0.20)
     np.testing.assert_allclose(fitted[2:], truth[2:], rtol=0.15)
     assert info.iterations >= 1 and info.objective.shape == (info.iterations,)
+    # 40 trees in 64 slots with known association: no run can overflow.
+    assert info.dropped_births.dtype == np.int64
+    np.testing.assert_array_equal(info.dropped_births, np.zeros(info.iterations, np.int64))
     assert info.typical_std.shape == (info.iterations + 1, 4)
     assert set(info.relative_std) == {"heading", "translation", "range", "bearing"}
     # The stated intervals are EM's: on this known-association log the likelihood search
@@ -388,3 +391,14 @@ def test_bad_scales_fail_before_any_filter_run(bad, monkeypatch):
 ])
 def test_best_run_ranks_overflowed_runs_last(objective, dropped, expected):
     assert sc._best_run(objective, dropped) == expected
+
+
+def test_progress_line_names_an_overflowed_run():
+    """An EM run whose map overflowed says so on its progress line (it will be passed over);
+    one that did not overflow says nothing about it."""
+    typical = np.array([0.01, 0.02, 0.05, 0.004])
+    full = sc._progress_line(3, -120.5, typical, 0.2, dropped=4321)
+    plain = sc._progress_line(3, -120.5, typical, 0.2)
+    assert "map full: 4321 births dropped" in full and "not be returned" in full
+    assert "births dropped" not in plain and "map full" not in plain
+    assert full.startswith("calibration iteration 3: log marginal likelihood -120.5")
