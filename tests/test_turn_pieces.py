@@ -47,7 +47,8 @@ def _np_turn_pieces(pose, odometry, p, num_side, span):
         jac = np.array([[-t * np.sin(heading), np.cos(heading), 0.0],
                         [t * np.cos(heading), np.sin(heading), 0.0], [1.0, 0.0, 1.0]])
         cov = jac @ np.diag([step**2, std[1] ** 2, std[2] ** 2]) @ jac.T
-        cov += (1e-5 * np.max(np.diag(cov)) + 1e-14) * np.eye(3)
+        # proposal.pose_jitter: 100 float64 epsilons of the position block, plus 1e-14.
+        cov += (100 * np.finfo(np.float64).eps * max(cov[0, 0], cov[1, 1]) + 1e-14) * np.eye(3)
         centres.append(centre)
         covs.append(cov)
     logits = -0.5 * (offsets / max(tau, 1e-30)) ** 2
