@@ -7,8 +7,8 @@ one run and the whole calibration are timed back to back in this process, and th
 calibration / run. Everything else a calibration does, compiles included, counts against it:
 a user calls ``calibrate_params`` once, in a fresh process. Logs: a held-out simulated loop
 (the ``experiments/self_calibration.py`` generator: 250 steps, 40 trees), UTIAS MRCLAM
-robot 1 (3,809 steps) and Victoria Park (7,230 scans; its calibration takes 8-15 minutes)
-when their folders are given.
+robot 1 (3,809 steps) and Victoria Park (7,230 scans; its calibration takes about 8-15
+minutes on 2 cores) when their folders are given.
 
     python benchmarks/calibration.py [--particles 100] [--stages]
     python benchmarks/calibration.py --mrclam DIR     # or JAXSLAM_MRCLAM=DIR; --skip-mrclam
@@ -149,7 +149,7 @@ def main(argv=None):
                         default=os.environ.get("JAXSLAM_VICTORIA_PARK"),
                         help="folder of the Victoria Park files (default: "
                         "$JAXSLAM_VICTORIA_PARK; without either, Victoria Park is skipped: "
-                        "its calibration takes 10-15 minutes)")
+                        "its calibration takes about 8-15 minutes)")
     parser.add_argument("--only", choices=["simulated", "mrclam", "victoria_park"],
                         nargs="+", help="run only these logs")
     parser.add_argument("--stages", action="store_true",

@@ -135,8 +135,8 @@ def pose_jitter(cov):
     heading's (a 0.02 m move with a 0.3 rad turn: 1.6e-11 m^2 against 3.4e-4 rad^2). Rounding
     J diag(sigma^2) J^T perturbs each entry of the position block by about eps times that
     block's own size, and the lateral variance is what is left after the position block and
-    its correlation with the heading cancel; so a jitter of a few hundred eps of the
-    position block keeps R positive definite without widening it. A jitter relative to R's
+    its correlation with the heading cancel; so a jitter of 100 eps of the position block
+    keeps R positive definite without widening it. A jitter relative to R's
     largest variance (the heading's, for a creep) was ~200x the creep's lateral variance and
     made the observation proposal far wider than the posterior (ESS/N 0.10 against 0.98
     without it, ``tests/test_fastslam2_reference.py``). The floor covers a move with no noise.

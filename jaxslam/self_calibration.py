@@ -109,8 +109,9 @@ class CalibrationInfo(NamedTuple):
       noise_scales: ``noise_scale.ScaleSearch`` of the likelihood search after EM
         (``scale_search=True`` and something fitted), else None (the verdict says which).
       dropped_births: (iterations,) int64 births each iteration's filter run dropped because
-        its map was full (summed over particles and steps); a run with any is passed over
-        when the best run is chosen (``_best_run``), unless every run had some.
+        its map was full (summed over particles and steps). When EM does not converge, the
+        settings returned are those of the best run after the first (``_best_run``), chosen
+        among the runs that dropped none when any did (and scored a finite value).
     """
 
     iterations: int
@@ -357,8 +358,9 @@ def _fit_warnings(last: _MStep | None, steps: int) -> list[str]:
 
 def _progress_line(iteration: int, objective: float, typical, change: float,
                    dropped: int = 0) -> str:
-    full = (f", map full: {dropped} births dropped (this run's settings will not be "
-            f"returned unless every run's map overflowed)" if dropped else "")
+    full = (f", map full: {dropped} births dropped (if EM does not converge, the run whose "
+            f"settings are returned is chosen among the later runs that dropped none, when "
+            f"there are any)" if dropped else "")
     return (f"calibration iteration {iteration}: log marginal likelihood {objective:.1f}{full}, "
             f"typical stds heading {typical[0]:.4g} rad, translation {typical[1]:.4g} m, "
             f"range {typical[2]:.4g} m, bearing {typical[3]:.4g} rad (largest change "

@@ -1,7 +1,7 @@
 """benchmarks/calibration.py's choice of logs: ``--only`` runs just the named ones, and a log
 whose data folder is missing is skipped with a line that names the option to give. The timings
 themselves are the script's own job (issue 17; docs/results.md, calibration_time): a real run
-takes from 30 s (the simulated loop) to 15 minutes (Victoria Park)."""
+takes from about 10 s (the simulated loop's calibration) to 8-15 minutes (Victoria Park's)."""
 import importlib.util
 import pathlib
 

@@ -223,6 +223,42 @@ def test_observation_proposal_vs_reference(params):
     np.testing.assert_allclose(np.asarray(none.mean), x_hat, atol=1e-12)
 
 
+def _np_pose_jitter(cov, dtype):
+    """proposal.pose_jitter's rule in plain NumPy: 100 eps of R's position block + 1e-14."""
+    return 100.0 * float(np.finfo(dtype).eps) * max(cov[0, 0], cov[1, 1]) + 1e-14
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_pose_jitter_rule_eager_jit_vmap(dtype):
+    """The jitter is 100 float epsilons of R's position block (plus 1e-14) in R's own dtype,
+    eagerly, under jit and under vmap, and R's heading variance does not enter it (the old
+    rule, 1e-5 of R's largest variance, was set by the heading for a creep). Tolerance: rtol
+    1e-6, float32 rounding of a product of three numbers (the rules differ by >= 10x)."""
+    rng = np.random.default_rng(5)
+    covs = []
+    for position, heading in ((1e-6, 0.04), (2.0, 1e-8), (1e-11, 3.4e-4), (0.0, 0.04)):
+        a = rng.normal(size=(3, 3))
+        cov = a @ a.T * 1e-3
+        cov[0, 0], cov[1, 1], cov[2, 2] = position, 0.5 * position, heading
+        covs.append(cov)
+    covs = np.asarray(covs, dtype)
+    want = np.array([_np_pose_jitter(c.astype(np.float64), dtype) for c in covs])
+    eager = np.array([float(proposal.pose_jitter(jnp.asarray(c))) for c in covs])
+    jitted = np.array([float(jax.jit(proposal.pose_jitter)(jnp.asarray(c))) for c in covs])
+    mapped = np.asarray(jax.vmap(proposal.pose_jitter)(jnp.asarray(covs)))
+    assert mapped.dtype == dtype
+    for got in (eager, jitted, mapped):
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=0)
+    # The heading variance alone changes nothing; the position block does.
+    moved = covs.copy()
+    moved[:, 2, 2] *= 1e4
+    np.testing.assert_array_equal(
+        np.asarray(jax.vmap(proposal.pose_jitter)(jnp.asarray(moved))), mapped)
+    # Above the 1e-14 floor, it scales with the position block (covs[1]: 2 m^2).
+    excess = float(proposal.pose_jitter(jnp.asarray(covs[1] * 4))) - 1e-14
+    np.testing.assert_allclose(excess, 4 * (float(mapped[1]) - 1e-14), rtol=1e-5)
+
+
 def test_mixture_log_correction_vs_reference(params):
     x_hat, prior_cov = ref_prediction()
     mean = x_hat + np.array([0.01, 0.0, 0.002])

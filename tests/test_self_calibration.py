@@ -399,6 +399,25 @@ def test_progress_line_names_an_overflowed_run():
     typical = np.array([0.01, 0.02, 0.05, 0.004])
     full = sc._progress_line(3, -120.5, typical, 0.2, dropped=4321)
     plain = sc._progress_line(3, -120.5, typical, 0.2)
-    assert "map full: 4321 births dropped" in full and "not be returned" in full
+    assert "map full: 4321 births dropped" in full and "among the later runs" in full
     assert "births dropped" not in plain and "map full" not in plain
     assert full.startswith("calibration iteration 3: log marginal likelihood -120.5")
+
+
+def test_dropped_births_recorded_when_the_map_overflows():
+    """40 trees in 16 slots: the first EM run drops births. CalibrationInfo.dropped_births
+    holds exactly the sum of that run's Trace.num_dropped_births (the same filter call with
+    the same key and starting settings), and the progress line says so."""
+    from jaxslam.filter import run_filter
+
+    controls, obs, poses = _log()
+    config = FilterConfig(num_particles=8, max_landmarks=16, max_obs=10, association="known")
+    lines = []
+    _, info = sc.calibrate_params(config, jax.random.PRNGKey(0), controls, obs, poses[0],
+                                  iterations=1, progress=lines.append, scale_search=False)
+    _, trace = run_filter(config, jax.random.PRNGKey(0), sc.starting_params(config), controls,
+                          obs, jnp.asarray(poses[0], jnp.float32), record_lineage=True)
+    want = int(np.sum(np.asarray(trace.num_dropped_births)))
+    assert want > 0
+    np.testing.assert_array_equal(info.dropped_births, [want])
+    assert f"map full: {want} births dropped" in lines[0]

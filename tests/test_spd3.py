@@ -26,8 +26,9 @@ def _spd(rng, cond):
 def _cases():
     rng = np.random.default_rng(0)
     mats = [_spd(rng, cond) for cond in (1.0, 10.0, 1e3, 1e5) for _ in range(4)]
-    # A pose covariance as the proposal builds it: a pure turn (no lateral variance) plus the
-    # relative 1e-5 jitter; and a diagonal one.
+    # A badly conditioned pose covariance: a pure turn (no lateral variance) plus a jitter of
+    # 1e-5 of its heading variance (the proposal's rule before 2026-12-04; the current one,
+    # proposal.pose_jitter, adds 100 eps of the position block); and a diagonal one.
     mats.append(np.diag([0.0, 0.0, 0.04]) + 1e-5 * 0.04 * np.eye(3) + 1e-14 * np.eye(3))
     mats.append(np.diag([2.0, 3.0, 5.0]))
     return np.stack(mats)
