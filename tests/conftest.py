@@ -7,7 +7,9 @@ user's. In this process a test that calls ``cli.main`` turns the persistent cach
 some of the later tests' executables to it aborted the process (jax 0.10.2 on the CPU,
 ``compilation_cache.put_executable_and_time``, seen twice in full runs).
 """
+import importlib.util
 import os
+import pathlib
 import tempfile
 
 import jax
@@ -17,6 +19,21 @@ os.environ.setdefault("JAXSLAM_CACHE_DIR", tempfile.mkdtemp(prefix="jaxslam-test
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
+
+
+@pytest.fixture(scope="session")
+def load_benchmark():
+    """``load(name)`` imports ``benchmarks/<name>.py`` by its path (the folder is scripts, not
+    a package) and returns the module."""
+    folder = pathlib.Path(__file__).resolve().parent.parent / "benchmarks"
+
+    def load(name: str):
+        spec = importlib.util.spec_from_file_location(f"benchmark_{name}", folder / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load
 
 
 @pytest.fixture(autouse=True)

@@ -2,21 +2,11 @@
 whose data folder is missing is skipped with a line that names the option to give. The timings
 themselves are the script's own job (issue 17; docs/results.md, calibration_time): a real run
 takes from about 10 s (the simulated loop's calibration) to 8-15 minutes (Victoria Park's)."""
-import importlib.util
-import pathlib
-
-SCRIPT = pathlib.Path(__file__).resolve().parent.parent / "benchmarks" / "calibration.py"
 
 
-def _load():
-    spec = importlib.util.spec_from_file_location("calibration_benchmark", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_missing_data_folders_are_skipped_by_name(tmp_path, capsys, monkeypatch):
-    benchmark = _load()
+def test_missing_data_folders_are_skipped_by_name(load_benchmark, tmp_path, capsys,
+                                                  monkeypatch):
+    benchmark = load_benchmark("calibration")
     calls = []
     monkeypatch.setattr(benchmark, "bench", lambda *args, **kwargs: calls.append(args[0]))
     missing = tmp_path / "absent"
@@ -29,8 +19,8 @@ def test_missing_data_folders_are_skipped_by_name(tmp_path, capsys, monkeypatch)
     assert str(missing) in out
 
 
-def test_only_simulated_runs_the_simulated_loop_alone(capsys, monkeypatch):
-    benchmark = _load()
+def test_only_simulated_runs_the_simulated_loop_alone(load_benchmark, capsys, monkeypatch):
+    benchmark = load_benchmark("calibration")
     calls = []
     monkeypatch.setattr(benchmark, "bench", lambda *args, **kwargs: calls.append(args[0]))
     monkeypatch.setenv("JAXSLAM_MRCLAM", "/nonexistent")

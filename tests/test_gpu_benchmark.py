@@ -1,14 +1,11 @@
 """benchmarks/gpu_study.py at a tiny size on the CPU: it runs the study machinery in chunks and
 writes compile time, run time and throughput to its JSON file, every number finite and
 positive. The accelerator-size run is the script's own job."""
-import importlib.util
 import json
 import math
-import pathlib
 
 import pytest
 
-SCRIPT = pathlib.Path(__file__).resolve().parent.parent / "benchmarks" / "gpu_study.py"
 TINY = ["--runs", "8", "--particles", "8", "--steps", "10", "--landmarks", "16",
         "--max-obs", "8", "--lidar-runs", "0"]
 TIMES = ("first_chunk_s", "compile_s", "filter_compile_s", "run_s", "simulator_s", "filter_s")
@@ -17,11 +14,8 @@ RATES = ("runs_per_s", "particle_steps_per_s", "filter_runs_per_s",
 
 
 @pytest.fixture(scope="module")
-def gpu_study():
-    spec = importlib.util.spec_from_file_location("gpu_study", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def gpu_study(load_benchmark):
+    return load_benchmark("gpu_study")
 
 
 def test_tiny_study_writes_finite_positive_timings(gpu_study, tmp_path):

@@ -1,23 +1,12 @@
 """benchmarks/throughput.py at a tiny size: its rows are consistent (a step's time is the run
 time over T, the ratio is PythonRobotics' 27.4 ms over it) and every time finite and positive.
 The full-size figures are the script's own job (issue 20; docs/results.md)."""
-import importlib.util
 import json
 import math
-import pathlib
-
-SCRIPT = pathlib.Path(__file__).resolve().parent.parent / "benchmarks" / "throughput.py"
 
 
-def _load():
-    spec = importlib.util.spec_from_file_location("throughput", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_tiny_single_and_batched_rows(tmp_path):
-    throughput = _load()
+def test_tiny_single_and_batched_rows(load_benchmark, tmp_path):
+    throughput = load_benchmark("throughput")
     out = tmp_path / "rows.json"
     rows = throughput.main(["--proposal", "motion", "--cases", "single", "batched",
                             "--runs", "2", "--steps", "5", "--json", str(out)])
