@@ -55,7 +55,6 @@ import time
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
@@ -168,11 +167,11 @@ def main(argv=None):
                   f"JAXSLAM_MRCLAM; got {args.mrclam})")
         else:
             from jaxslam.datasets.mrclam import load_mrclam
+            from jaxslam.pipeline import log_inputs
 
             log = load_mrclam(pathlib.Path(args.mrclam), 1)
-            bench("MRCLAM robot 1", FilterConfig(num_particles=args.particles, max_landmarks=64,
-                                                 max_obs=int(log.obs_z.shape[1])),
-                  log.controls, log.observations(), log.initial_pose, args.stages)
+            bench("MRCLAM robot 1", *log_inputs(log, FilterConfig(
+                num_particles=args.particles, max_landmarks=64)), args.stages)
     if "victoria_park" in only:
         if args.victoria_park is None or not pathlib.Path(args.victoria_park).is_dir():
             print(f"Victoria Park: skipped (no data folder: give --victoria-park DIR or set "
@@ -188,25 +187,16 @@ def victoria_park_case(folder, num_particles):
     Park log as ``experiments/victoria_park.py`` calibrates it: trunks detected in every
     scan, controls corrected by the laser-only steering bias, 320 landmark slots, the
     calibrated settings set's fixed values as the starting point."""
-    import dataclasses
-
     from experiments import victoria_park_pipeline as vps
     from jaxslam.datasets import victoria_park as vpm
+    from jaxslam.pipeline import log_inputs
 
     data = vpm.load_victoria_park(folder)
     settings = vps.load_settings("calibrated")
     config = vps.settings_config(settings, num_particles=num_particles, max_landmarks=320)
-    scans = vpm.victoria_park_log(data)
-    steps = data.laser_time.shape[0]
-    obs = vps.detect_scans(scans.scan_ranges, scans.scan_angles, config.max_obs)
-    bias = vps.steering_bias_of(settings, data, obs)
-    log = vps.victoria_park_robot_log(data, obs, bias, steps)
-    obs = log.observations()
-    config = dataclasses.replace(config, max_obs=int(obs.z.shape[1]),
-                                 motion_model=log.motion_model)
-    start = np.zeros(3) if log.initial_pose is None else np.asarray(log.initial_pose)
-    return (config, np.asarray(log.controls), obs, start,
-            vps.settings_params(settings, config))
+    log, _, _ = vps.calibration_log(data, settings, config)
+    config, controls, obs, start = log_inputs(log, config)
+    return config, controls, obs, start, vps.settings_params(settings, config)
 
 
 if __name__ == "__main__":

@@ -529,6 +529,21 @@ class VictoriaParkCalibration(NamedTuple):
     warnings: tuple
 
 
+def calibration_log(data: VictoriaPark, settings: Settings, config: FilterConfig,
+                    observations: Observations | None = None, num_scans: int | None = None):
+    """The log ``calibrate_victoria_park`` calibrates on: (``RobotLog`` of the first
+    ``num_scans`` scans (default all) with their detected trunks (``detect_scans`` with
+    ``config.max_obs`` unless ``observations`` are given) and the controls corrected by the
+    set's steering bias, those observations, the bias)."""
+    if observations is None:
+        log = victoria_park_log(data)
+        observations = detect_scans(log.scan_ranges, log.scan_angles, config.max_obs)
+    steps = _prefix(num_scans, data.laser_time.shape[0])
+    observations = _slice_obs(observations, steps)
+    bias = steering_bias_of(settings, data, observations)
+    return victoria_park_robot_log(data, observations, bias, steps), observations, bias
+
+
 def calibrate_victoria_park(key, data: VictoriaPark, settings: str | Settings = CALIBRATED,
                             observations: Observations | None = None,
                             num_scans: int | None = None, progress=None,
@@ -551,13 +566,8 @@ def calibrate_victoria_park(key, data: VictoriaPark, settings: str | Settings = 
 
     settings = _settings(settings)
     config = settings_config(settings) if config is None else config
-    if observations is None:
-        log = victoria_park_log(data)
-        observations = detect_scans(log.scan_ranges, log.scan_angles, config.max_obs)
-    steps = _prefix(num_scans, data.laser_time.shape[0])
-    observations = _slice_obs(observations, steps)
-    bias = steering_bias_of(settings, data, observations)
-    robot_log = victoria_park_robot_log(data, observations, bias, steps)
+    robot_log, observations, bias = calibration_log(data, settings, config, observations,
+                                                    num_scans)
     start = time.perf_counter()
     run = filter_log(robot_log, config, settings_params(settings, config), key,
                      calibrate=settings.calibrate, smooth=False, progress=progress)

@@ -138,6 +138,20 @@ def _truth_metrics(log, mean_pose, smoothed, est, map_match_threshold: float) ->
     return values
 
 
+def log_inputs(log, config: FilterConfig):
+    """What ``run_filter`` and ``calibrate_params`` take from a ``RobotLog``: (``config`` with
+    the log's observation width K and motion model, controls (T, 3) float32,
+    ``Observations`` (T, K, ...), start pose (3,), the origin when the log has none)."""
+    import dataclasses
+
+    obs = log.observations()
+    config = dataclasses.replace(config, max_obs=int(obs.z.shape[1]),
+                                 motion_model=log.motion_model)
+    controls = jnp.asarray(np.asarray(log.controls), jnp.float32)
+    start = np.zeros(3) if log.initial_pose is None else np.asarray(log.initial_pose)
+    return config, controls, obs, start
+
+
 def filter_log(log, config: FilterConfig, params: Params | None = None, key=None, *,
                calibrate: bool = True, smooth: bool = False, visit_gap: int | None = None,
                close_loops: bool = False, map_match_threshold: float = 1.0,
@@ -161,20 +175,14 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
       calibration_options: keyword arguments for ``calibrate_params``.
       progress: optional callable(str) told of each stage.
     """
-    import dataclasses
-
     if close_loops and (not smooth or visit_gap is not None):
         raise ValueError("close_loops needs smooth=True and no visit_gap (visits are the "
                          "smoother's own soft loop closures; choose one)")
     key = jax.random.PRNGKey(0) if key is None else key
-    obs = log.observations()
+    config, controls, obs, start = log_inputs(log, config)
     from jaxslam.validation import observation_units_warnings  # units guard (issue 18)
     units = observation_units_warnings(np.asarray(obs.z), np.asarray(obs.valid), max_range=(
         None if calibrate or params is None else float(np.max(np.asarray(params.max_range)))))
-    config = dataclasses.replace(config, max_obs=int(obs.z.shape[1]),
-                                 motion_model=log.motion_model)
-    controls = jnp.asarray(np.asarray(log.controls), jnp.float32)
-    start = np.zeros(3) if log.initial_pose is None else np.asarray(log.initial_pose)
     calibration = None
     if calibrate:
         params, calibration = calibrate_params(config, key, controls, obs, start, params,
