@@ -394,8 +394,9 @@ def test_best_run_ranks_overflowed_runs_last(objective, dropped, expected):
 
 
 def test_progress_line_names_an_overflowed_run():
-    """An EM run whose map overflowed says so on its progress line (it will be passed over);
-    one that did not overflow says nothing about it."""
+    """An EM run whose map overflowed says so on its progress line (if EM does not converge,
+    it is passed over when another run kept every birth); one that did not overflow says
+    nothing about it."""
     typical = np.array([0.01, 0.02, 0.05, 0.004])
     full = sc._progress_line(3, -120.5, typical, 0.2, dropped=4321)
     plain = sc._progress_line(3, -120.5, typical, 0.2)
