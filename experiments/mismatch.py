@@ -54,8 +54,13 @@ FILTERS = {"before": "motion", "after": "default"}
 
 
 def filter_settings(name: str, particles: int):
-    """(FilterConfig, Params) of filter ``name`` ("before" / "after"), told the defaults."""
-    fields, param_fields = proposal_settings(FILTERS[name])
+    """(FilterConfig, Params) of filter ``name``, told the defaults: "before" or "after",
+    optionally followed by ``:field=value,...`` overrides of FilterConfig or Params fields
+    (``proposal_study.proposal_settings``), e.g. ``after:motion_outlier_probability=0.2``."""
+    base, colon, extra = name.partition(":")
+    if base not in FILTERS:
+        raise SystemExit(f"unknown filter {base!r}; expected one of {sorted(FILTERS)}")
+    fields, param_fields = proposal_settings(FILTERS[base] + colon + extra)
     config = FilterConfig(num_particles=particles, max_landmarks=96, max_obs=12, **fields)
     params = default_params(config, max_range=MAX_RANGE, **param_fields)
     return config, params
@@ -128,7 +133,8 @@ def main(argv=None):
     parser.add_argument("--wobble", type=float, nargs="+", default=[0.0, 0.3])
     parser.add_argument("--odometry", type=float, nargs="+", default=[1.0, 2.0, 4.0, 6.0])
     parser.add_argument("--sensor", type=float, nargs="+", default=[1.0])
-    parser.add_argument("--filters", nargs="+", default=list(FILTERS), choices=list(FILTERS))
+    parser.add_argument("--filters", nargs="+", default=list(FILTERS),
+                        help="before, after, or either with :field=value,... overrides")
     parser.add_argument("--out", default=None, help="markdown file for the table")
     args = parser.parse_args(argv)
     chunk = min(args.chunk, args.runs)

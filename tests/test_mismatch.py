@@ -3,12 +3,14 @@ against the library's ``scan_filter`` on tiny logs (2 runs, 12 steps, 4 particle
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from experiments.mismatch import (CHI2_3DOF_95, filter_settings, main, run_logs,
                                   summary_row)
 from experiments.proposal_study import make_logs
 from experiments.self_calibration import true_params
 from jaxslam.filter import make_filter, scan_filter
+from jaxslam.types import FilterConfig
 
 
 def test_summary_row_hand_example():
@@ -25,6 +27,23 @@ def test_summary_row_hand_example():
     assert cells[6] == "nan"
     assert cells[7] == "6.48"
     assert cells[8] == "62.5 %"
+
+
+def test_filter_settings_and_overrides():
+    """before: the seed paper's filter, no bursts; after: the shipped defaults; overrides after
+    a colon reach FilterConfig or Params; an unknown filter name stops with its name."""
+    config, params = filter_settings("before", 4)
+    assert config.proposal == "motion" and not config.anchor_empty_map
+    assert float(params.motion_outlier_probability) == 0.0
+    config, params = filter_settings("after", 4)
+    assert config.proposal == FilterConfig().proposal
+    assert float(params.motion_outlier_probability) == pytest.approx(0.05)
+    assert float(params.max_range) == 12.0
+    config, params = filter_settings('after:motion_outlier_probability=0.2,proposal="mixture"', 4)
+    assert config.proposal == "mixture"
+    assert float(params.motion_outlier_probability) == pytest.approx(0.2)
+    with pytest.raises(SystemExit, match="unknown filter 'later'"):
+        filter_settings("later", 4)
 
 
 def test_filter_loop_matches_scan_filter():
