@@ -12,7 +12,12 @@ For each run it reports the final position error and the map size of
   * the filter given the true noise and the true 12 m range ("true"),
   * the filter after ``calibrate_params`` from the log alone, started from
     ``starting_params`` ("calibrated"),
-and the recovered coefficients against the true ones.
+and the recovered coefficients against the true ones. Recovery of the noise, per group
+(``recovery``): the calibrated typical std (heading, translation, range, bearing: the rms of
+the model's std over this log's moves and observations, ``CalibrationInfo.typical_std``)
+over the true model's on the same log, and whether that ratio lies within the interval the
+calibration states, 1 +- 1.96 ``CalibrationInfo.relative_std`` (its 95 % interval if the
+std's error were only the sampling error of its samples).
 
     python experiments/self_calibration.py --runs 8 --odometry-scale 2 --sensor-scale 5
 """
@@ -26,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxslam import metrics
+from jaxslam.calibration_residuals import typical_stds
 from jaxslam.datasets.odometry import odometry_path
 from jaxslam.filter import estimate, run_filter
 from jaxslam.self_calibration import calibrate_params, starting_params
@@ -83,6 +89,44 @@ def score(config, key, params, controls, obs, truth, trees):
     return error, int(np.sum(np.asarray(est.active))), int(seen.sum()), found
 
 
+GROUPS = ("heading", "translation", "range", "bearing")
+
+
+def recovery(truth_params, info, controls, observations):
+    """Per group (4,): calibrated / true typical std, the stated 95 % half-width 1.96 x
+    ``info.relative_std`` (inf when the group was not fitted), and whether the ratio lies
+    within 1 +- that half-width. ``controls`` (T, 3) are odometry; ``observations`` the log's."""
+    valid = np.asarray(observations.valid)
+    z_range = np.asarray(observations.z, np.float64)[valid][:, 0]
+    true = np.asarray(typical_stds(truth_params, np.asarray(controls, np.float64), z_range))
+    ratio = np.asarray(info.typical_std[-1], np.float64) / true
+    half = np.array([1.96 * info.relative_std.get(g, np.inf) for g in GROUPS])
+    return ratio, half, np.abs(ratio - 1.0) <= half
+
+
+def _write_recovery(args, recovered):
+    """Append this regime's recovery rows to results/self_calibration/recovery.md."""
+    import pathlib
+
+    table = pathlib.Path("results") / "self_calibration" / "recovery.md"
+    table.parent.mkdir(parents=True, exist_ok=True)
+    if not table.exists():
+        table.write_text(
+            "Calibrated / true typical std per noise group, median [min, max] over runs; the "
+            "stated 95 % half-width 1.96 x relative_std (median); runs whose ratio lies in "
+            "1 +- that half-width.\n\n| odometry x Table 1 | sensor x Table 2 | wobble [m] | "
+            "group | runs | calibrated / true | stated half-width | truth inside |\n"
+            "|---|---|---|---|---|---|---|---|\n")
+    ratio, half, inside = (np.asarray([r[i] for r in recovered]) for i in range(3))
+    with table.open("a") as handle:
+        for g, group in enumerate(GROUPS):
+            handle.write(
+                f"| {args.odometry_scale:g} | {args.sensor_scale:g} | {args.wobble:g} | {group} "
+                f"| {len(recovered)} | {np.median(ratio[:, g]):.2f} [{ratio[:, g].min():.2f}, "
+                f"{ratio[:, g].max():.2f}] | {np.median(half[:, g]):.3f} | "
+                f"{int(inside[:, g].sum())} of {len(recovered)} |\n")
+
+
 def _write_results(args, rows):
     """Append this regime's row to results/self_calibration/results.md (one row a regime)."""
     import pathlib
@@ -123,7 +167,7 @@ def main(argv=None):
     config = FilterConfig(num_particles=args.particles, max_landmarks=96, max_obs=12,
                           proposal=args.proposal)
     truth_params = true_params(args.odometry_scale, args.sensor_scale)
-    rows = []
+    rows, recovered = [], []
     for run in range(args.runs):
         key = jax.random.fold_in(jax.random.PRNGKey(args.seed), run)
         key_log, key_filter = jax.random.split(key)
@@ -139,14 +183,18 @@ def main(argv=None):
         cal_error, cal_map, _, _ = score(config, key_filter, calibrated, controls, obs,
                                          truth, trees)
         rows.append((dr_error, true_error, cal_error, true_map, cal_map, seen))
+        recovered.append(recovery(truth_params, info, controls, obs))
         print(f"run {run}: dead reckoning {dr_error:.3f} m | true noise {true_error:.3f} m, "
               f"{true_map} landmarks | calibrated {cal_error:.3f} m, {cal_map} landmarks "
               f"({seen} trees seen) | {info.iterations} iterations, {seconds:.1f} s, "
               f"{info.verdict}")
         print("   fitted:", {k: v for k, v in info.values.items()})
+        print("   calibrated / true typical std:", dict(zip(GROUPS, recovered[-1][0].round(3))),
+              "within the stated 95 % interval:", dict(zip(GROUPS, recovered[-1][2])))
     rows = np.asarray(rows)
     med = np.median(rows, axis=0)
     _write_results(args, rows)
+    _write_recovery(args, recovered)
     print(f"median over {args.runs} runs: dead reckoning {med[0]:.3f} m, true noise "
           f"{med[1]:.3f} m, calibrated {med[2]:.3f} m; map true {med[3]:.0f}, calibrated "
           f"{med[4]:.0f}, trees seen {med[5]:.0f}")
