@@ -3,9 +3,9 @@ after the default proposal changed, with the pose NEES and the 95 % ellipse cove
 
 A user who sets nothing runs ``default_params`` (Table 1 motion noise and Table 2's sensor
 slopes of Geiser et al., "Practical Implementation of FastSLAM for Forestry Robot", ICAROB
-2023; the sensor's range from its data sheet, here 12 m). These logs are the wobbly loops of
-``experiments/self_calibration.py`` (40 trees, 12 m range, 250 steps of 0.5 m; wobble 0.3 m
-turns the heading by up to ~0.15 rad a step), simulated with the odometry noise times
+2023; the sensor's range from its data sheet, here 12 m). These logs are the loops of
+``experiments/self_calibration.py`` (40 trees, 12 m range, 250 steps of 0.5 m; a smooth
+circle, or with a 0.3 m wobble that turns the heading by up to ~0.15 rad a step), simulated with the odometry noise times
 ``--odometry`` and the sensor noise times ``--sensor`` (``self_calibration.true_params``).
 The filter is told neither factor.
 
@@ -51,6 +51,16 @@ CHI2_3DOF_95 = 7.815  # 95 % quantile of chi-square with 3 degrees of freedom
 CHI2_3DOF_MEDIAN = 2.366
 COV_FLOOR = (1e-6, 1e-6, 1e-8)  # m^2, m^2, rad^2 added to the particles' pose covariance
 FILTERS = {"before": "motion", "after": "default"}
+
+
+def regime_key(seed: int, wobble: float, odometry: float, sensor: float):
+    """The key of one grid point: ``PRNGKey(seed)`` folded with each factor in hundredths
+    (distinct points get distinct keys). It is split once into the logs' key and the filter
+    runs' key, so no filter run reuses a key of the simulation."""
+    key = jax.random.PRNGKey(seed)
+    for factor in (wobble, odometry, sensor):
+        key = jax.random.fold_in(key, int(round(100 * factor)))
+    return key
 
 
 def filter_settings(name: str, particles: int):
@@ -142,17 +152,16 @@ def main(argv=None):
         raise SystemExit("--runs must be a multiple of --forests and of --chunk")
     rows = []
     for wobble, odometry, sensor in itertools.product(args.wobble, args.odometry, args.sensor):
-        key = jax.random.fold_in(jax.random.PRNGKey(args.seed),
-                                 int(1000 * wobble + 10 * odometry + sensor))
-        controls, obs, truth, _ = make_logs(key, true_params(odometry, sensor), wobble,
+        key_logs, key_filters = jax.random.split(regime_key(args.seed, wobble, odometry, sensor))
+        controls, obs, truth, _ = make_logs(key_logs, true_params(odometry, sensor), wobble,
                                             args.runs, args.forests)
         if args.steps is not None:
             controls, truth = controls[:, :args.steps], truth[:, :args.steps + 1]
             obs = jax.tree.map(lambda a: a[:, :args.steps], obs)
         for name in args.filters:
             config, params = filter_settings(name, args.particles)
-            error, nees, compile_s, run_s = run_logs(config, params, jax.random.fold_in(key, 1),
-                                                     controls, obs, truth, chunk)
+            error, nees, compile_s, run_s = run_logs(config, params, key_filters, controls,
+                                                     obs, truth, chunk)
             row = summary_row(wobble, odometry, sensor, name, error, nees,
                               error.size * controls.shape[1] / run_s)
             print(f"{row}  (compile {compile_s:.1f} s)", flush=True)

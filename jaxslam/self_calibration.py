@@ -98,7 +98,8 @@ class CalibrationInfo(NamedTuple):
         log with each iteration's Params (``Trace.log_evidence`` summed over steps).
       smoother_cost: (iterations,) the smoother's final robust cost per residual row.
       typical_std: (iterations + 1, 4) typical std of the four noise groups (heading [rad],
-        translation [m], range [m], bearing [rad]: the mean over the log's samples) before
+        translation [m], range [m], bearing [rad]: the root mean square of the model's std over
+        the log's moves and observations, ``calibration_residuals.typical_stds``) before
         each iteration and, last row, of the returned settings (after the scale search).
       values: the final settings, a dict of floats or tuples (the fitted ``Params`` fields).
       relative_std: dict group -> relative standard error of its std (module docstring):
