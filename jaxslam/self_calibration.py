@@ -105,7 +105,7 @@ class CalibrationInfo(NamedTuple):
       relative_std: dict group -> relative standard error of its std (module docstring):
         the sampling error of the group's samples only. It holds for the sensor groups
         (held-out simulated logs: the truth within 1 +- 1.96 relative_std in 28 of 32
-        cases) and is far too narrow for the motion groups (13 of 32: their error is
+        cases) and is far too narrow for the motion groups (14 of 32: their error is
         dominated by the association and path EM converged to; docs/results.md,
         self_calibration).
       samples: dict group -> number of samples the fit used.
