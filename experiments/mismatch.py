@@ -5,8 +5,9 @@ A user who sets nothing runs ``default_params`` (Table 1 motion noise and Table 
 slopes of Geiser et al., "Practical Implementation of FastSLAM for Forestry Robot", ICAROB
 2023; the sensor's range from its data sheet, here 12 m). These logs are the loops of
 ``experiments/self_calibration.py`` (40 trees, 12 m range, 250 steps of 0.5 m; a smooth
-circle, or with a 0.3 m wobble that turns the heading by up to ~0.15 rad a step), simulated with the odometry noise times
-``--odometry`` and the sensor noise times ``--sensor`` (``self_calibration.true_params``).
+circle, or with a 0.3 m wobble that turns the heading by up to ~0.15 rad a step), simulated
+with the odometry noise times ``--odometry`` and the sensor noise times ``--sensor``
+(``self_calibration.true_params``).
 The filter is told neither factor.
 
 Filters:

@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from experiments.mismatch import (CHI2_3DOF_95, filter_settings, main, run_logs,
-                                  summary_row)
+from experiments.mismatch import (CHI2_3DOF_95, filter_settings, main, regime_key,
+                                  run_logs, summary_row)
 from experiments.proposal_study import make_logs
 from experiments.self_calibration import true_params
 from jaxslam.filter import make_filter, scan_filter
@@ -17,7 +17,8 @@ def test_summary_row_hand_example():
     """Four runs, final errors 0.2, 1.5, NaN and 0.9: a NaN estimate counts as diverged (2 of
     4), and the median of errors holding a NaN is shown as nan, not hidden. NEES (4 runs x 2
     steps): run medians 1, 2.95, 10.0075, inf -> median (2.95 + 10.0075) / 2 = 6.47875,
-    shown to 3 digits; steps inside 7.815: 1, 1, 3, 2.9 and 7.0, 5 of 8 = 62.5 % (inf is outside)."""
+    shown to 3 digits; steps inside 7.815: 1, 1, 3, 2.9 and 7.0, 5 of 8 = 62.5 % (inf is
+    outside)."""
     error = np.array([0.2, 1.5, np.nan, 0.9])
     nees = np.array([[1.0, 1.0], [3.0, 2.9], [CHI2_3DOF_95 + 0.1, 12.1], [np.inf, 7.0]])
     row = summary_row(0.3, 4.0, 1.0, "after", error, nees, 1234.0)
@@ -27,6 +28,26 @@ def test_summary_row_hand_example():
     assert cells[6] == "nan"
     assert cells[7] == "6.48"
     assert cells[8] == "62.5 %"
+
+
+def test_grid_keys_are_distinct_and_never_shared_with_the_simulation():
+    """The default grid (and the sensor rows) gives one key per point, and the filter runs'
+    keys (``split(key_filters, R)``) are none of the simulation's keys (``fold_in(key_logs,
+    f)`` per forest and the two halves of each forest's split): the defect fixed in the
+    script, where the filter key was a forest's key."""
+    points = ([(w, o, 1.0) for w in (0.0, 0.3) for o in (1.0, 2.0, 4.0, 6.0)]
+              + [(w, 1.0, s) for w in (0.0, 0.3) for s in (2.0, 4.0)])
+    keys = [regime_key(900, *point) for point in points]
+    assert len({tuple(np.asarray(k).tolist()) for k in keys}) == len(points)
+    for key in keys:
+        key_logs, key_filters = jax.random.split(key)
+        simulation = set()
+        for forest in range(10):
+            folded = jax.random.fold_in(key_logs, forest)
+            simulation.add(tuple(np.asarray(folded).tolist()))
+            simulation.update(tuple(np.asarray(k).tolist()) for k in jax.random.split(folded))
+        filters = {tuple(np.asarray(k).tolist()) for k in jax.random.split(key_filters, 100)}
+        assert not simulation & filters
 
 
 def test_filter_settings_and_overrides():
@@ -97,8 +118,8 @@ def test_nees_against_a_numpy_reference():
     (the robot moves 0.5 m a step against spreads of millimetres)."""
     from experiments.mismatch import COV_FLOOR
 
-    key = jax.random.PRNGKey(5)
-    controls, obs, truth, _ = make_logs(key, true_params(2.0, 1.0), 0.3, 2, 1)
+    key_logs, key = jax.random.split(jax.random.PRNGKey(5))
+    controls, obs, truth, _ = make_logs(key_logs, true_params(2.0, 1.0), 0.3, 2, 1)
     controls, truth = controls[:, :3], truth[:, :4]
     obs = jax.tree.map(lambda a: a[:, :3], obs)
     config, params = filter_settings("after", 4)
@@ -113,6 +134,7 @@ def test_nees_against_a_numpy_reference():
                             jax.tree.map(lambda a, r=run, t=t: a[r, t], obs))
             want = _nees_reference(state.particles.pose, state.log_weight, truth[run, t + 1],
                                    COV_FLOOR)
+            assert np.isfinite(want)  # assert_allclose would take NaN == NaN
             np.testing.assert_allclose(nees[run, t], want, rtol=1e-2)
 
 

@@ -4,8 +4,9 @@ import types
 import numpy as np
 import jax.numpy as jnp
 
-from experiments.self_calibration import recovery, true_params
+from experiments.self_calibration import Recovery, _write_recovery, recovery, true_params
 from jaxslam.calibration_residuals import typical_stds
+from jaxslam.noise_scale import scaled_noise
 from jaxslam.types import make_observations
 
 ODOMETRY = jnp.asarray([[0.05, 0.5, -0.02], [0.0, 0.5, 0.1], [-0.1, 0.4, 0.0]])
@@ -36,21 +37,51 @@ def test_recovery_hand_example():
     np.testing.assert_allclose(found.half_width, 1.96 * np.array([0.01, 0.1, 0.05, 0.001]),
                                rtol=1e-12)
     np.testing.assert_array_equal(found.inside, [True, False, False, False])
-    assert not found.scaled
+    assert not found.scaled.any()
     del info.relative_std["bearing"]
     found = recovery(truth, info, ODOMETRY, OBS)
     assert np.isinf(found.half_width[3]) and found.inside[3]
 
 
 def test_recovery_divides_out_the_search_scales():
-    """Returned settings with motion x2 and observation x4 on top of an EM estimate equal to
-    the truth: the ratio is EM's (1 everywhere, inside any interval) and the run is flagged."""
+    """Returned settings = EM's estimate (here the truth) with the library's own
+    ``scaled_noise`` motion x2, observation x4 on top: the ratio is EM's (1 everywhere,
+    inside any interval), and the groups the search changed are flagged (all four here; the
+    motion pair only when the observation scale is 1)."""
     truth = true_params(4.0, 2.0)
-    true = _true_typical(truth)
+    returned = _true_typical(scaled_noise(truth, 2.0, 4.0))
     info = types.SimpleNamespace(
-        typical_std=np.stack([true, true * np.array([2.0, 2.0, 4.0, 4.0])]),
+        typical_std=np.stack([_true_typical(truth), returned]),
         noise_scales=types.SimpleNamespace(motion_scale=2.0, observation_scale=4.0),
         relative_std={"heading": 0.01, "translation": 0.01, "range": 0.01, "bearing": 0.01})
     found = recovery(truth, info, ODOMETRY, OBS)
-    np.testing.assert_allclose(found.ratio, np.ones(4), rtol=1e-12)
-    assert found.inside.all() and found.scaled
+    np.testing.assert_allclose(found.ratio, np.ones(4), rtol=1e-6)  # float32 Params
+    assert found.inside.all() and found.scaled.all()
+    info.noise_scales = types.SimpleNamespace(motion_scale=2.0, observation_scale=1.0)
+    info.typical_std = np.stack([_true_typical(truth),
+                                 _true_typical(scaled_noise(truth, 2.0, 1.0))])
+    found = recovery(truth, info, ODOMETRY, OBS)
+    np.testing.assert_array_equal(found.scaled, [True, True, False, False])
+
+
+def test_write_recovery_rows_match_the_header(tmp_path, monkeypatch):
+    """Two calls append two blocks of four rows to one table whose rows have the header's
+    column count; the counts of runs inside and scaled are per group."""
+    monkeypatch.chdir(tmp_path)
+    args = types.SimpleNamespace(seed=500, odometry_scale=4.0, sensor_scale=2.0, wobble=0.3)
+    runs = [Recovery(np.array([1.0, 1.5, 0.99, 1.0]), np.full(4, 0.1),
+                     np.array([True, False, True, True]), np.array([True, True, False, False])),
+            Recovery(np.array([0.5, 1.0, 1.0, 1.2]), np.full(4, 0.1),
+                     np.array([False, True, True, False]), np.zeros(4, bool))]
+    _write_recovery(args, runs)
+    _write_recovery(args, runs)
+    lines = (tmp_path / "results" / "self_calibration" / "recovery.md").read_text().splitlines()
+    table = [line for line in lines if line.startswith("|")]
+    header, rows = table[0], table[2:]
+    assert len(rows) == 8
+    assert all(row.count("|") == header.count("|") for row in rows)
+    heading = [c.strip() for c in rows[0].strip("|").split("|")]
+    assert heading[:6] == ["500", "4", "2", "0.3", "heading", "2"]
+    assert heading[6] == "0.75 [0.50, 1.00]" and heading[8] == "1 of 2" and heading[9] == "1"
+    bearing = [c.strip() for c in rows[3].strip("|").split("|")]
+    assert bearing[8] == "1 of 2" and bearing[9] == "0"
