@@ -48,8 +48,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.mixture_regime import regime_params
-from experiments.proposal_study import (longest_sparse_stretch, make_logs, proposal_settings,
-                                        run_point, wilson)
+from experiments.proposal_study import (longest_sparse_stretch, make_logs, point_keys,
+                                        proposal_settings, run_point, wilson)
 from jaxslam.smoothing import move_whitening, observation_std, smooth_path
 from jaxslam.smoothing import problem as least_squares
 from jaxslam.types import FilterConfig, Params
@@ -288,25 +288,24 @@ def main(argv=None):
     if first % per_forest or not 0 < first <= args.runs:
         raise SystemExit(f"--first must be a multiple of runs / forests = {per_forest}")
     truth_params = regime_params(args.odometry, "lidar")
-    key = jax.random.fold_in(jax.random.PRNGKey(args.seed), int(1000 * args.wobble
-                                                                + args.odometry))
-    # make_logs draws forest f from fold_in(key, f) and run i of a forest from its own key,
+    key_logs, key_filters = point_keys(args.seed, args.wobble, args.odometry)
+    # make_logs draws forest f from fold_in(key_logs, f) and run i of a forest from its own key,
     # so the first N logs of --runs R are the logs of N runs over N / (R / F) forests.
     used_forests = first // per_forest
-    controls, obs, truth, _ = make_logs(key, truth_params, args.wobble, first, used_forests)
+    controls, obs, truth, _ = make_logs(key_logs, truth_params, args.wobble, first, used_forests)
     _, param_fields = proposal_settings("default")
     params = truth_params._replace(**{k: jnp.asarray(v, jnp.float32)
                                       for k, v in param_fields.items()})
     out, tables, columns, filter_rows = {"sparsest": longest_sparse_stretch(obs.valid)}, [], {}, []
     if not args.no_smooth:
         tick = time.perf_counter()
-        floor = smooth_logs(controls, obs, truth, forest_centres(key, used_forests, args.wobble),
+        floor = smooth_logs(controls, obs, truth, forest_centres(key_logs, used_forests, args.wobble),
                             params, per_forest, args.iterations)
         tables += floor_tables(floor, time.perf_counter() - tick, args.iterations)
         out.update({f"map_{k}": v for k, v in floor.items()})
         columns["MAP"] = floor["error"]
     for particles in args.particles:
-        error, compile_s, run_s = filter_errors(particles, params, jax.random.fold_in(key, 1),
+        error, compile_s, run_s = filter_errors(particles, params, key_filters,
                                                 controls, obs, truth, args.runs, args.chunk)
         out[f"filter_P{particles}"] = columns[f"filter P = {particles}"] = error
         filter_rows.append(rate_row(f"default filter, P = {particles}", error > 1, first, error)

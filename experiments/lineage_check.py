@@ -49,8 +49,8 @@ import numpy as np
 from experiments.information_floor import (PURE_GAUSSIAN, dead_reckoning, filter_errors,
                                            rate_row, sparse_rows, write_outputs)
 from experiments.mixture_regime import regime_params
-from experiments.proposal_study import (longest_sparse_stretch, make_logs, proposal_settings,
-                                        wilson)
+from experiments.proposal_study import (longest_sparse_stretch, make_logs, point_keys,
+                                        proposal_settings, wilson)
 from jaxslam.filter import make_filter, scan_filter
 from jaxslam.lineage import LineagePath, landmark_identities, trace_lineage
 from jaxslam.smoothing import smooth_lineage, smooth_path
@@ -537,9 +537,8 @@ def regime_histories(args: argparse.Namespace):
     if first % chunk:
         raise SystemExit(f"{first} logs must be a multiple of the chunk {chunk}")
     truth_params = regime_params(args.odometry, "lidar")
-    key = jax.random.fold_in(jax.random.PRNGKey(args.seed), int(1000 * args.wobble
-                                                                + args.odometry))
-    controls, obs, truth, _ = make_logs(key, truth_params, args.wobble, first,
+    key_logs, key_filters = point_keys(args.seed, args.wobble, args.odometry)
+    controls, obs, truth, _ = make_logs(key_logs, truth_params, args.wobble, first,
                                         first // per_forest)
     if args.steps is not None:
         controls, truth = controls[:, :args.steps], truth[:, :args.steps + 1]
@@ -548,7 +547,7 @@ def regime_histories(args: argparse.Namespace):
     params = truth_params._replace(**{k: jnp.asarray(v, jnp.float32)
                                       for k, v in param_fields.items()})
     config = FilterConfig(num_particles=args.particles, max_landmarks=96, max_obs=12, **fields)
-    final, histories, compile_s, run_s = lineage_runs(config, params, jax.random.fold_in(key, 1),
+    final, histories, compile_s, run_s = lineage_runs(config, params, key_filters,
                                                       controls, obs, truth, chunk)
     online = position_error(final, truth[:, -1])
     print(f"filter with lineage: compile {compile_s:.0f} s, run {run_s:.0f} s; online > 1 m "
@@ -556,7 +555,7 @@ def regime_histories(args: argparse.Namespace):
     notes = [f"Filter P = {args.particles} with lineage: compile {compile_s:.0f} s, run "
              f"{run_s:.0f} s ({first * controls.shape[1] / run_s:.3g} run-steps/s, loaded)."]
     if args.check:
-        reference, _, _ = filter_errors(args.particles, params, jax.random.fold_in(key, 1),
+        reference, _, _ = filter_errors(args.particles, params, key_filters,
                                         controls, obs, truth, args.runs, chunk)
         same = int(np.sum(reference == online))
         notes.append(f"information_floor.filter_errors (no lineage, same keys and chunk) "

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.mixture_regime import regime_params
-from experiments.self_calibration import MAX_RANGE, SIZE, wobbly_loop
+from experiments.self_calibration import SIZE, wobbly_loop
 from jaxslam.filter import make_filter, scan_filter
 from jaxslam.geometry import compose, relative
 from jaxslam.types import FilterConfig, default_params
@@ -65,6 +65,18 @@ def wilson(k: int, n: int, z: float = 1.96):
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
     return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def point_keys(seed: int, wobble: float, odometry: float):
+    """(logs' key, filter runs' key) of one grid point: ``PRNGKey(seed)`` folded with
+    round(1000 wobble + odometry), split once. ``make_logs`` draws forest f from
+    ``fold_in(logs' key, f)``; the filter runs split the other key once a run, so no filter
+    run reuses a key of the simulation (an earlier version took ``fold_in(key, 1)``, forest
+    1's key, for the filters: their runs 0 and 1 drew with forest 1's forest and noise keys).
+    """
+    key = jax.random.fold_in(jax.random.PRNGKey(seed), int(round(1000 * wobble + odometry)))
+    key_logs, key_filters = jax.random.split(key)
+    return key_logs, key_filters
 
 
 def make_logs(key, params, wobble: float, runs: int, forests: int):
@@ -193,9 +205,9 @@ def main(argv=None):
     rows, per_run = [], {}
     for wobble, odometry in itertools.product(args.wobble, args.odometry):
         truth_params = regime_params(odometry, "lidar")
-        key = jax.random.fold_in(jax.random.PRNGKey(args.seed), int(1000 * wobble + odometry))
+        key_logs, key_filters = point_keys(args.seed, wobble, odometry)
         tick = time.perf_counter()
-        controls, obs, truth, seen = make_logs(key, truth_params, wobble, args.runs,
+        controls, obs, truth, seen = make_logs(key_logs, truth_params, wobble, args.runs,
                                                args.forests)
         per_run[f"{wobble:g}/{odometry:g}/sparsest"] = longest_sparse_stretch(obs.valid)
         print(f"wobble {wobble} m, odometry {odometry}x: {args.runs} logs in "
@@ -207,7 +219,7 @@ def main(argv=None):
             params = truth_params._replace(**{k: jnp.asarray(v, jnp.float32)
                                               for k, v in param_fields.items()})
             error, count, nees, floor, removed, compile_s, run_s = run_point(
-                config, params, jax.random.fold_in(key, 1), controls, obs, truth,
+                config, params, key_filters, controls, obs, truth,
                 min(args.chunk, args.runs))
             diverged = int(np.sum(error > 1.0))
             low, high = wilson(diverged, args.runs)
