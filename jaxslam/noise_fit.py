@@ -276,6 +276,60 @@ def observation_noise_update(res: Residuals, scales: smoothing.NoiseScales, used
     return np.stack(new)
 
 
+def std_relative_error(white) -> float:
+    """Relative standard error of a noise std estimated from the whitened residuals ``white``
+    (S,) of its group, in time order (non-finite entries dropped).
+
+    The std is taken as the root mean square: s = sqrt(mean(w^2)), so by the delta method
+    SE(s) / s = SE(mean(w^2)) / (2 mean(w^2)). For independent Gaussian residuals that is
+    1 / sqrt(2 S) (chi-square), the figure the calibration stated before; heavy tails
+    (kurtosis kappa: sqrt((kappa - 1) / (4 S)) for independent samples) and correlation
+    between neighbouring steps (a bias or a burst spread over a few moves) make it larger.
+    SE(mean(w^2)) is estimated by batch means: the squares cut into B = floor(sqrt(S))
+    consecutive batches, SE = std(batch means) / sqrt(B), which holds for both when a batch
+    is longer than the correlation (Flegal and Jones, "Batch means and spectral variance
+    estimators in Markov chain Monte Carlo", Annals of Statistics 2010). With B about 15 the
+    estimate is itself uncertain by about 20 %, so the result is never below the Gaussian
+    figure. Fewer than 16 samples: the Gaussian figure (inf for none).
+    """
+    squares = np.asarray(white, np.float64) ** 2
+    squares = squares[np.isfinite(squares)]
+    count = squares.size
+    if count == 0:
+        return float("inf")
+    gaussian = 1.0 / np.sqrt(2.0 * count)
+    batches = int(np.sqrt(count))
+    mean = float(np.mean(squares))
+    if batches < 4 or not mean > 0.0:
+        return gaussian
+    length = count // batches
+    batch_means = squares[:batches * length].reshape(batches, length).mean(axis=1)
+    error_of_mean = np.std(batch_means, ddof=1) / np.sqrt(batches)
+    return float(max(gaussian, 0.5 * error_of_mean / mean))
+
+
+def group_relative_errors(res: Residuals, used: np.ndarray, motion: bool,
+                          observation: bool) -> dict:
+    """``std_relative_error`` of each fitted noise group (heading, translation, range,
+    bearing) from ``res``' residuals whitened by their own Eq. (1) / Table 2 std (the shape
+    of the settings the residuals were computed with; the relative error does not depend on
+    the scale). The heading group's residual is rot1 + rot2, as in ``motion_noise_update``.
+    ``used`` (S,): the observation samples that entered the fit."""
+    out = {}
+    if motion:
+        moving = np.all(np.isfinite(res.true_moves), axis=1)
+        error, std = res.move_error[moving], np.maximum(res.move_std[moving], STD_FLOOR)
+        out["heading"] = std_relative_error((error[:, 0] + error[:, 2])
+                                            / np.hypot(std[:, 0], std[:, 2]))
+        out["translation"] = std_relative_error(error[:, 1] / std[:, 1])
+    if observation:
+        white = (res.observation_error[used]
+                 / np.maximum(res.observation_std[used], STD_FLOOR))
+        out["range"] = std_relative_error(white[:, 0])
+        out["bearing"] = std_relative_error(white[:, 1])
+    return out
+
+
 def radius_noise_from_history(ids, radius, valid, min_sightings: int = 3) -> tuple[float, int]:
     """Std [m] of one detected trunk radius from the scatter within each tree, no ground truth.
 

@@ -458,7 +458,15 @@ def test_calibrate_command_writes_params_that_run_reads(tmp_path, monkeypatch, c
     finally:
         _reset_cache_config()
     assert status == 0
-    assert "calibration: likelihood over noise scales" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "calibration: likelihood over noise scales" in out
+    # Each fitted group's typical std with its stated 95 % interval, in percent.
+    stated = {line.split()[0]: line.split() for line in out.splitlines()
+              if line.startswith("    ") and "+-" in line}
+    assert set(stated) == {"heading", "translation", "range", "bearing"}
+    assert stated["range"][2] == "m" and stated["bearing"][2] == "rad"
+    assert all(float(words[1]) > 0 and 0 < float(words[4]) < 100 and words[5] == "%"
+               for words in stated.values())
     params = pipeline.load_params(tmp_path / "p.toml")
     # The true range std is 5 cm at every distance (2-8 m here); the fit's std at 5 m is
     # within 30 % (about 400 associated observations and a two-term fit).

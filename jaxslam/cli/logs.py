@@ -75,12 +75,23 @@ def _load_robot_log(path, args=None):
     return log
 
 
+_NOISE_GROUPS = (("heading", "rad"), ("translation", "m"), ("range", "m"), ("bearing", "rad"))
+
+
 def _print_calibration(info) -> None:
     print(f"calibration: {info.verdict} ({info.iterations} iterations)")
     for name, value in info.values.items():
         text = (f"{value:.6g}" if isinstance(value, float)
                 else "(" + ", ".join(f"{v:.6g}" for v in value) + ")")
         print(f"  {name:<24} {text}")
+    if info.relative_std and len(info.typical_std):
+        print("  typical noise std over this log (rms of the model's std), +- the 95 % "
+              "interval of its residuals' sampling error (the path and association EM "
+              "settled on are not counted: docs/cli.md):")
+        for group, (name, unit) in enumerate(_NOISE_GROUPS):
+            if name in info.relative_std:
+                print(f"    {name:<12} {info.typical_std[-1, group]:.4g} {unit} +- "
+                      f"{196 * info.relative_std[name]:.0f} %")
 
 
 def _print_warnings(lines) -> None:

@@ -1,0 +1,117 @@
+"""``noise_fit.std_relative_error``: the stated relative error of a fitted noise std, against
+the closed forms it must reproduce (independent Gaussian, Laplace, AR(1)), its coverage on
+heavy-tailed samples, and its edges. NumPy, float64, fixed seeds."""
+import numpy as np
+import pytest
+
+from jaxslam.noise_fit import std_relative_error
+
+
+def _gaussian_figure(count: int) -> float:
+    return 1.0 / np.sqrt(2.0 * count)
+
+
+def test_independent_gaussian_gives_the_chi_square_figure():
+    """n = 10,000: 100 batches of 100, so the batch estimate is within about 7 % (one sigma,
+    1 / sqrt(2 x 99)) of 1 / sqrt(2 n); the result is never below it. Bound: 1.3x (4 sigma)."""
+    white = np.random.default_rng(0).standard_normal(10_000)
+    stated = std_relative_error(white)
+    assert _gaussian_figure(10_000) <= stated <= 1.3 * _gaussian_figure(10_000)
+
+
+def test_heavy_tails_widen_it_by_the_kurtosis():
+    """Laplace samples (kurtosis 6): SE(s) / s = sqrt((6 - 1) / (4 n)), 1.58x the Gaussian
+    figure. Tolerance 20 %: the batch estimate's own error, about 7 % x sqrt(kurtosis of a
+    batch's mean of squares ~ 1), with margin."""
+    white = np.random.default_rng(1).laplace(size=10_000)
+    expected = np.sqrt(5.0 / (4 * 10_000))
+    np.testing.assert_allclose(std_relative_error(white), expected, rtol=0.2)
+
+
+def test_correlated_steps_widen_it():
+    """Gaussian AR(1) with rho = 0.8: the squares are correlated with rho^2 at lag 1, so the
+    variance of their mean grows by (1 + rho^2) / (1 - rho^2) = 4.56 and the relative error
+    by its square root, 2.13x the Gaussian figure. Batches of 100 steps against a
+    correlation length of about 3 steps; tolerance 20 %."""
+    rng = np.random.default_rng(2)
+    rho, n = 0.8, 10_000
+    white = np.empty(n)
+    white[0] = rng.standard_normal()
+    for t in range(1, n):
+        white[t] = rho * white[t - 1] + np.sqrt(1 - rho**2) * rng.standard_normal()
+    expected = np.sqrt((1 + rho**2) / (1 - rho**2)) * _gaussian_figure(n)
+    np.testing.assert_allclose(std_relative_error(white), expected, rtol=0.2)
+
+
+def test_intervals_hold_the_truth_on_heavy_tailed_samples():
+    """400 samples of 400 Student-t (5 degrees of freedom, kurtosis 9) scaled to unit
+    variance; the rms is the estimate and 1 +- 1.96 x the stated error its interval. With
+    20 batches the stated error is itself uncertain, and the rms of t samples is skewed, so
+    coverage is checked in [85 %, 99 %] against 95 % nominal; the Gaussian figure's
+    intervals, about half as wide, hold the truth in under 80 % (it is what the test must
+    tell apart)."""
+    rng = np.random.default_rng(3)
+    samples = rng.standard_t(5, size=(400, 400)) / np.sqrt(5 / 3)
+    estimate = np.sqrt(np.mean(samples**2, axis=1))
+    stated = np.array([std_relative_error(row) for row in samples])
+    inside = np.abs(estimate - 1.0) <= 1.96 * stated
+    gaussian = np.abs(estimate - 1.0) <= 1.96 * _gaussian_figure(400)
+    assert 0.85 <= inside.mean() <= 0.99
+    assert gaussian.mean() < 0.8
+
+
+@pytest.mark.parametrize("white, expected", [
+    (np.zeros(0), np.inf),                                   # nothing fitted
+    (np.full(5, np.nan), np.inf),                           # nothing finite
+    (np.arange(1.0, 11.0), _gaussian_figure(10)),            # under 16 samples
+    (np.zeros(100), _gaussian_figure(100)),                  # no spread at all
+])
+def test_edges(white, expected):
+    assert std_relative_error(white) == expected
+
+
+def test_non_finite_samples_are_dropped():
+    """NaN and inf residuals (moves the smoother gave no pose) do not enter."""
+    white = np.random.default_rng(4).standard_normal(400)
+    padded = np.concatenate([white[:200], [np.nan, np.inf, -np.inf], white[200:]])
+    assert std_relative_error(padded) == std_relative_error(white)
+
+
+def _residuals(steps: int = 300, samples: int = 500, seed: int = 5):
+    from jaxslam.calibration_residuals import Residuals
+
+    rng = np.random.default_rng(seed)
+    moves = np.ones((steps, 3))
+    moves[7] = np.nan  # a move the smoother gave no pose: not a sample
+    return Residuals(
+        true_moves=moves, measured_moves=np.ones((steps, 3)),
+        move_error=rng.standard_normal((steps, 3)) * [0.01, 0.05, 0.02],
+        move_features=np.ones((3, steps, 3)),
+        move_std=np.tile([0.01, 0.05, 0.02], (steps, 1)),
+        measured_z=np.ones((samples, 2)),
+        observation_error=rng.laplace(size=(samples, 2)) * [0.1, 0.01],
+        filter_error=np.zeros((samples, 2)), observation_std=np.tile([0.1, 0.01], (samples, 1)),
+        obs_step=np.arange(samples), obs_landmark=np.zeros(samples, int),
+        sightings=np.array([samples]))
+
+
+def test_group_errors_whiten_each_group_as_the_fit_does():
+    """The heading group's residual is rot1 + rot2 over hypot of their stds, translation's
+    its own, the sensor groups' the used observations'; moves without a smoothed pose and
+    unused observations are left out; unfitted groups are absent."""
+    from jaxslam.noise_fit import group_relative_errors
+
+    res = _residuals()
+    used = np.arange(500) % 5 != 0
+    errors = group_relative_errors(res, used, motion=True, observation=True)
+    keep = np.arange(300) != 7
+    e, s = res.move_error[keep], res.move_std[keep]
+    assert errors["heading"] == std_relative_error((e[:, 0] + e[:, 2]) / np.hypot(s[:, 0],
+                                                                                  s[:, 2]))
+    assert errors["translation"] == std_relative_error(e[:, 1] / s[:, 1])
+    white = res.observation_error[used] / res.observation_std[used]
+    assert errors["range"] == std_relative_error(white[:, 0])
+    assert errors["bearing"] == std_relative_error(white[:, 1])
+    assert set(group_relative_errors(res, used, motion=False, observation=True)) == {
+        "range", "bearing"}
+    assert group_relative_errors(res, used, motion=False, observation=False) == {}
