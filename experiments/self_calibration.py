@@ -32,10 +32,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxslam import metrics
+from jaxslam import lineage, metrics
 from jaxslam.calibration_residuals import typical_stds
 from jaxslam.datasets.odometry import odometry_path
 from jaxslam.filter import estimate, run_filter
+from jaxslam.pipeline import offline_path
 from jaxslam.self_calibration import calibrate_params, starting_params
 from jaxslam.types import FilterConfig, default_params
 from sims.forest import random_forest
@@ -78,6 +79,22 @@ def make_log(key, params, wobble: float = 0.3):
     scenario = build_scenario(key_runs, forest, path, 1, params=params, max_obs=12)
     return (scenario.controls[0], jax.tree.map(lambda a: a[0], scenario.observations),
             scenario.poses[0], forest.centres)
+
+
+def offline_error(config, key, params, controls, obs, truth) -> float:
+    """Final position error [m] of the offline estimate of the filter run ``score`` makes
+    (same key): the best particle's history smoothed with the loops the filter missed
+    closed (``pipeline.offline_path``, as ``jaxslam run --smooth --close-loops``); inf when
+    the smoother fails."""
+    final, trace = run_filter(config, key, params, controls, obs, truth[0],
+                              record_lineage=True)
+    history = lineage.trace_lineage(trace.lineage, estimate(final).best_particle)
+    try:
+        path, _ = offline_path(history, controls, obs, truth[0], params, config.motion_model,
+                               close_loops=True)
+    except (RuntimeError, np.linalg.LinAlgError, ValueError):
+        return float("inf")
+    return float(np.hypot(*(np.asarray(path[-1, :2]) - np.asarray(truth[-1, :2]))))
 
 
 def score(config, key, params, controls, obs, truth, trees):
@@ -160,6 +177,37 @@ def _write_recovery(args, recovered):
                 f"| {int(scaled[:, g].sum())} |\n")
 
 
+def offline_row(args, rows, offline) -> str:
+    """One markdown row: dead reckoning, then online / offline final error [m] of the filter
+    given the true noise and of the calibrated one (median over runs; runs over 0.5 m in
+    brackets); rows (R, 6) as ``main`` collects them, offline (R, 2) true, calibrated."""
+    def cell(errors):
+        return f"{np.median(errors):.3f} ({int(np.sum(errors > 0.5))})"
+
+    return (f"| {args.odometry_scale:g} | {args.sensor_scale:g} | {args.wobble:g} | "
+            f"{len(rows)} | {np.median(rows[:, 0]):.2f} | {cell(rows[:, 1])} | "
+            f"{cell(offline[:, 0])} | {cell(rows[:, 2])} | {cell(offline[:, 1])} |\n")
+
+
+def _write_offline(args, rows, offline):
+    """Append this regime's ``offline_row`` to results/self_calibration/offline.md."""
+    import pathlib
+
+    out = pathlib.Path("results") / "self_calibration"
+    out.mkdir(parents=True, exist_ok=True)
+    table = out / "offline.md"
+    if not table.exists():
+        table.write_text(
+            "Final position error [m], median over runs (runs over 0.5 m in brackets): online "
+            "(the filter's weighted mean) and offline (the best particle's history smoothed, "
+            "missed loops closed). P = %d, proposal %s.\n\n"
+            "| odometry x Table 1 | sensor x Table 2 | wobble [m] | runs | dead reckoning | "
+            "true noise: online | true noise: offline | calibrated: online | calibrated: "
+            "offline |\n|---|---|---|---|---|---|---|---|---|\n" % (args.particles, args.proposal))
+    with table.open("a") as handle:
+        handle.write(offline_row(args, rows, offline))
+
+
 def _write_results(args, rows):
     """Append this regime's row to results/self_calibration/results.md (one row a regime)."""
     import pathlib
@@ -196,11 +244,14 @@ def main(argv=None):
     parser.add_argument("--wobble", type=float, default=0.3,
                         help="lateral wobble amplitude [m]; 0.3 turns up to ~0.15 rad a step, "
                         "0 is a smooth circle (0.025 rad a step)")
+    parser.add_argument("--offline", action="store_true",
+                        help="also score the offline estimate (smoothed, missed loops closed: "
+                        "offline_error) of both filters; results/self_calibration/offline.md")
     args = parser.parse_args(argv)
     config = FilterConfig(num_particles=args.particles, max_landmarks=96, max_obs=12,
                           proposal=args.proposal)
     truth_params = true_params(args.odometry_scale, args.sensor_scale)
-    rows, recovered = [], []
+    rows, recovered, offline = [], [], []
     for run in range(args.runs):
         key = jax.random.fold_in(jax.random.PRNGKey(args.seed), run)
         key_log, key_filter = jax.random.split(key)
@@ -217,6 +268,11 @@ def main(argv=None):
                                          truth, trees)
         rows.append((dr_error, true_error, cal_error, true_map, cal_map, seen))
         recovered.append(recovery(truth_params, info, controls, obs))
+        if args.offline:
+            offline.append([offline_error(config, key_filter, p, controls, obs, truth)
+                            for p in (truth_params, calibrated)])
+            print(f"   offline (smoothed, loops closed): true noise {offline[-1][0]:.3f} m, "
+                  f"calibrated {offline[-1][1]:.3f} m")
         print(f"run {run}: dead reckoning {dr_error:.3f} m | true noise {true_error:.3f} m, "
               f"{true_map} landmarks | calibrated {cal_error:.3f} m, {cal_map} landmarks "
               f"({seen} trees seen) | {info.iterations} iterations, {seconds:.1f} s, "
@@ -229,6 +285,8 @@ def main(argv=None):
     med = np.median(rows, axis=0)
     _write_results(args, rows)
     _write_recovery(args, recovered)
+    if args.offline:
+        _write_offline(args, rows, np.asarray(offline))
     print(f"median over {args.runs} runs: dead reckoning {med[0]:.3f} m, true noise "
           f"{med[1]:.3f} m, calibrated {med[2]:.3f} m; map true {med[3]:.0f}, calibrated "
           f"{med[4]:.0f}, trees seen {med[5]:.0f}")

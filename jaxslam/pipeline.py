@@ -197,7 +197,7 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
     smoothed, closed = None, {}
     history = lineage.trace_lineage(trace.lineage, est.best_particle)  # traced once
     if smooth:
-        smoothed, closed = _smoothed_path(history, controls, obs, start, params,
+        smoothed, closed = offline_path(history, controls, obs, start, params,
                                           log.motion_model, visit_gap, close_loops)
     valid = np.asarray(obs.valid)
     share, births = history_counts(history, valid)
@@ -214,10 +214,11 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
     return LogRun(params, calibration, est, trace, mean_pose, smoothed, values, tuple(warnings))
 
 
-def _smoothed_path(history, controls, obs, start, params: Params, motion_model: str,
-                   visit_gap: int | None, close_loops: bool):
-    """The smoothed path (T, 3) of the best particle's ``history`` and, with ``close_loops``,
-    the closure counts {loop_closures, landmarks_joined} (``filter_log``'s step 4)."""
+def offline_path(history, controls, obs, start, params: Params, motion_model: str,
+                 visit_gap: int | None = None, close_loops: bool = False):
+    """The smoothed path (T, 3) of the best particle's ``history`` (``LineagePath``) and,
+    with ``close_loops``, the closure counts {loop_closures, landmarks_joined} (else {}):
+    ``filter_log``'s step 4, for callers that ran the filter themselves."""
     from jaxslam import loop_closure, smoothing
     from jaxslam.motion import control_to_odometry
 

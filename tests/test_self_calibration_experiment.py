@@ -4,7 +4,8 @@ import types
 import numpy as np
 import jax.numpy as jnp
 
-from experiments.self_calibration import Recovery, _write_recovery, recovery, true_params
+from experiments.self_calibration import (Recovery, _write_offline, _write_recovery, recovery,
+                                         true_params)
 from jaxslam.calibration_residuals import typical_stds
 from jaxslam.noise_scale import scaled_noise
 from jaxslam.types import make_observations
@@ -85,3 +86,40 @@ def test_write_recovery_rows_match_the_header(tmp_path, monkeypatch):
     assert heading[6] == "0.75 [0.50, 1.00]" and heading[8] == "1 of 2" and heading[9] == "1"
     bearing = [c.strip() for c in rows[3].strip("|").split("|")]
     assert bearing[8] == "1 of 2" and bearing[9] == "0"
+
+
+def test_offline_table_by_hand(tmp_path, monkeypatch):
+    """Three runs: medians and the over-0.5 m counts of each column, worked by hand; the row
+    has the header's column count."""
+    monkeypatch.chdir(tmp_path)
+    args = types.SimpleNamespace(odometry_scale=2.0, sensor_scale=5.0, wobble=0.3,
+                                 particles=100, proposal="observation")
+    # dead reckoning, true online, calibrated online, maps, trees seen
+    rows = np.array([[1.0, 3.0, 0.2, 30, 31, 31], [9.0, 0.2, 0.6, 28, 28, 28],
+                     [2.0, 1.2, 0.9, 28, 29, 31]])
+    offline = np.array([[0.1, 0.3], [0.13, np.inf], [0.46, 0.05]])
+    _write_offline(args, rows, offline)
+    table = [line for line in (tmp_path / "results" / "self_calibration" / "offline.md")
+             .read_text().splitlines() if line.startswith("|")]
+    assert table[2].count("|") == table[0].count("|")
+    cells = [c.strip() for c in table[2].strip("|").split("|")]
+    assert cells == ["2", "5", "0.3", "3", "2.00", "1.200 (2)", "0.130 (0)", "0.600 (2)",
+                     "0.300 (1)"]
+
+
+def test_offline_error_on_a_short_log():
+    """A 60-step log with the true noise: the smoothed, loop-closed estimate is a finite
+    error, and with the truth's own noise on a log this short it ends within 0.5 m (the
+    filter alone does too: dead reckoning over 30 m at 1x Table 1 drifts decimetres)."""
+    import jax
+
+    from experiments.self_calibration import make_log, offline_error
+    from jaxslam.types import FilterConfig
+
+    params = true_params(1.0, 2.0)
+    controls, obs, truth, _ = make_log(jax.random.PRNGKey(3), params, 0.0)
+    controls, truth = controls[:60], truth[:61]
+    obs = jax.tree.map(lambda a: a[:60], obs)
+    config = FilterConfig(num_particles=8, max_landmarks=64, max_obs=12)
+    error = offline_error(config, jax.random.PRNGKey(4), params, controls, obs, truth)
+    assert np.isfinite(error) and 0.0 <= error < 0.5
