@@ -3,8 +3,9 @@ one of the simulation's (the logs of information_floor, lineage_check and loop_c
 come from the same ``point_keys`` and ``make_logs``)."""
 import jax
 import numpy as np
+import pytest
 
-from experiments.proposal_study import point_keys
+from experiments.proposal_study import clustered_interval, point_keys, wilson
 
 
 def _as_tuples(keys) -> set:
@@ -41,3 +42,39 @@ def test_filter_keys_are_none_of_the_simulations():
     assert not _as_tuples(jax.random.split(key_filters, 1000)) & simulation
     old = _as_tuples(jax.random.split(jax.random.fold_in(key_logs, 1), 1000))
     assert old & simulation == _as_tuples(jax.random.split(jax.random.fold_in(key_logs, 1)))
+
+
+def test_clustered_interval_by_hand():
+    """4 forests of 5 runs, exceeding in 0, 1, 2 and 5 runs: rates 0, 0.2, 0.4, 1.0, mean
+    0.4, sample std sqrt(((0.4)^2 + 0.2^2 + 0 + 0.6^2) / 3) = sqrt(0.56 / 3) = 0.4320, SE
+    0.2160: 0.4 +- 1.96 x 0.2160 = [0, 0.8234] (the low end clipped at 0)."""
+    exceed = np.zeros((4, 5), bool)
+    exceed[1, :1] = exceed[2, :2] = exceed[3, :] = True
+    low, high = clustered_interval(exceed.ravel(), 4)
+    assert low == 0.0
+    np.testing.assert_allclose(high, 0.4 + 1.96 * np.sqrt(0.56 / 3) / 2, rtol=1e-12)
+
+
+def test_clustered_interval_covers_when_the_rate_depends_on_the_forest():
+    """Simulated studies like the proposal study's (50 forests x 20 runs), each forest's own
+    rate drawn from Beta(1.2, 2.8) (mean 0.3; forest-to-forest spread like the default's at
+    the hard point, design effect ~5): over 400 studies the forest-clustered interval holds
+    the true mean in 90-99 % (nominal 95 %; 50 clusters, normal quantile), the binomial
+    Wilson interval over runs in under 70 %."""
+    rng = np.random.default_rng(7)
+    hold, hold_wilson = 0, 0
+    for _ in range(400):
+        rates = rng.beta(1.2, 2.8, size=50)
+        exceed = rng.random((50, 20)) < rates[:, None]
+        low, high = clustered_interval(exceed.ravel(), 50)
+        hold += low <= 0.3 <= high
+        low, high = wilson(int(exceed.sum()), exceed.size)
+        hold_wilson += low <= 0.3 <= high
+    assert 0.90 <= hold / 400 <= 0.99
+    assert hold_wilson / 400 < 0.7
+
+
+@pytest.mark.parametrize("runs, forests", [(10, 1), (10, 3), (0, 0)])
+def test_clustered_interval_bad_shapes(runs, forests):
+    with pytest.raises(ValueError, match="forests"):
+        clustered_interval(np.zeros(runs, bool), forests)
