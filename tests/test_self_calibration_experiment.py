@@ -31,10 +31,11 @@ def test_recovery_hand_example():
     true = _true_typical(truth)
     factor = np.array([1.0, 1.5, 0.9, 1.02])
     info = types.SimpleNamespace(
-        typical_std=np.stack([true * 3.0, true * factor]), noise_scales=None,
+        typical_std=np.stack([true * 3.0, true * factor]), noise_scales=None, values={},
         relative_std={"heading": 0.01, "translation": 0.1, "range": 0.05, "bearing": 0.001})
     found = recovery(truth, info, ODOMETRY, OBS)
     np.testing.assert_allclose(found.ratio, factor, rtol=1e-12)
+    np.testing.assert_array_equal(found.total_ratio, found.ratio)  # no bursts fitted
     np.testing.assert_allclose(found.half_width, 1.96 * np.array([0.01, 0.1, 0.05, 0.001]),
                                rtol=1e-12)
     np.testing.assert_array_equal(found.inside, [True, False, False, False])
@@ -53,7 +54,7 @@ def test_recovery_divides_out_the_search_scales():
     returned = _true_typical(scaled_noise(truth, 2.0, 4.0))
     info = types.SimpleNamespace(
         typical_std=np.stack([_true_typical(truth), returned]),
-        noise_scales=types.SimpleNamespace(motion_scale=2.0, observation_scale=4.0),
+        noise_scales=types.SimpleNamespace(motion_scale=2.0, observation_scale=4.0), values={},
         relative_std={"heading": 0.01, "translation": 0.01, "range": 0.01, "bearing": 0.01})
     found = recovery(truth, info, ODOMETRY, OBS)
     np.testing.assert_allclose(found.ratio, np.ones(4), rtol=1e-6)  # float32 Params
@@ -71,9 +72,11 @@ def test_write_recovery_rows_match_the_header(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     args = types.SimpleNamespace(seed=500, odometry_scale=4.0, sensor_scale=2.0, wobble=0.3)
     runs = [Recovery(np.array([1.0, 1.5, 0.99, 1.0]), np.full(4, 0.1),
-                     np.array([True, False, True, True]), np.array([True, True, False, False])),
+                     np.array([True, False, True, True]), np.array([True, True, False, False]),
+                     np.array([1.2, 1.8, 0.99, 1.0]), np.array([False, False, True, True])),
             Recovery(np.array([0.5, 1.0, 1.0, 1.2]), np.full(4, 0.1),
-                     np.array([False, True, True, False]), np.zeros(4, bool))]
+                     np.array([False, True, True, False]), np.zeros(4, bool),
+                     np.array([0.6, 1.05, 1.0, 1.2]), np.array([False, True, True, False]))]
     _write_recovery(args, runs)
     _write_recovery(args, runs)
     lines = (tmp_path / "results" / "self_calibration" / "recovery.md").read_text().splitlines()
@@ -84,8 +87,34 @@ def test_write_recovery_rows_match_the_header(tmp_path, monkeypatch):
     heading = [c.strip() for c in rows[0].strip("|").split("|")]
     assert heading[:6] == ["500", "4", "2", "0.3", "heading", "2"]
     assert heading[6] == "0.75 [0.50, 1.00]" and heading[8] == "1 of 2" and heading[9] == "1"
+    assert heading[10] == "0.90 [0.60, 1.20]" and heading[11] == "0 of 2"
     bearing = [c.strip() for c in rows[3].strip("|").split("|")]
     assert bearing[8] == "1 of 2" and bearing[9] == "0"
+
+
+def test_fitted_bursts_count_in_the_total_ratio():
+    """Fitted bursts eps 0.1, kappa 3: the mixture's rms is sqrt(0.9 + 0.9) = 1.342 times the
+    core, so a core ratio of 0.75 is a total of 1.006 (inside +-0.02); the defaults kept
+    without bursts (here 0.05, 8) count as none; the sensor groups never change."""
+    from experiments.self_calibration import burst_rms_factor
+
+    assert burst_rms_factor({"motion_outlier_probability": 0.1, "motion_outlier_scale": 3.0},
+                            (0.05, 8.0)) == np.sqrt(1.8)
+    assert burst_rms_factor({"motion_outlier_probability": 0.05, "motion_outlier_scale": 8.0},
+                            (0.05, 8.0)) == 1.0
+    assert burst_rms_factor({}, (0.05, 8.0)) == 1.0
+    truth = true_params(2.0, 2.0)
+    true = _true_typical(truth)
+    info = types.SimpleNamespace(
+        typical_std=np.stack([true, true * np.array([0.75, 0.75, 0.75, 1.0])]),
+        noise_scales=None,
+        values={"motion_outlier_probability": 0.1, "motion_outlier_scale": 3.0},
+        relative_std={"heading": 0.01, "translation": 0.01, "range": 0.01, "bearing": 0.01})
+    found = recovery(truth, info, ODOMETRY, OBS, (0.05, 8.0))
+    np.testing.assert_allclose(found.total_ratio, [0.75 * np.sqrt(1.8)] * 2 + [0.75, 1.0],
+                               rtol=1e-12)
+    np.testing.assert_array_equal(found.inside, [False, False, False, True])
+    np.testing.assert_array_equal(found.total_inside, [True, True, False, True])
 
 
 def test_offline_table_by_hand(tmp_path, monkeypatch):
