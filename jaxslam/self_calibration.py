@@ -114,7 +114,8 @@ class CalibrationInfo(NamedTuple):
         the motion groups (33 of 64 with the chi-square figure alone), whose error is
         dominated by the association and path EM converged to (docs/results.md,
         self_calibration).
-      samples: dict group -> number of samples the fit used.
+      samples: dict group -> number of samples the fit used (the M-steps behind the
+        returned settings, as ``relative_std``).
       converged: whether the typical stds stopped moving (``tol``).
       verdict: one line in plain words.
       warnings: tuple of plain-word warnings (data too sparse, a group kept at its start).
@@ -337,6 +338,21 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
                   group_relative_errors(res, used, motion is not None, obs is not None))
 
 
+def _stated_errors(m_steps: list, source, steps: int) -> tuple[dict, dict]:
+    """(relative_std, samples) of ``CalibrationInfo``: each group as its latest fit among
+    the M-steps up to ``source`` (the one behind the returned settings; all of ``m_steps``
+    when ``source`` is none of them) stated it; ``steps`` moves for the motion groups."""
+    behind = next((i + 1 for i, step in enumerate(m_steps) if step is source), len(m_steps))
+    relative_std, samples = {}, {}
+    for step in m_steps[:behind]:
+        relative_std.update(step.relative_std)
+        if step.motion_fitted:
+            samples["heading"] = samples["translation"] = steps
+        if step.observation_fitted:
+            samples["range"] = samples["bearing"] = step.used
+    return relative_std, samples
+
+
 def _best_run(objective, dropped) -> int:
     """Index of the filter run with the highest log marginal likelihood.
 
@@ -465,7 +481,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                                        {}, False, "not calibrated: too few observations",
                                        (warning,), None, np.zeros(0, np.int64))
     objective, dropped, costs, typical, evaluated, warnings = [], [], [], [], [], []
-    samples, values = {}, {}
+    values = {}
     converged, last, m_steps = False, None, []
     controls = jnp.asarray(log.controls, dtype)
     for done in range(1, iterations + 1):
@@ -485,10 +501,6 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         last = step
         m_steps.append(step)  # m_steps[i] made the settings of filter run i + 1
         costs.append(step.cost)
-        if step.motion_fitted:
-            samples["heading"] = samples["translation"] = steps
-        if step.observation_fitted:
-            samples["range"] = samples["bearing"] = step.used
         params = _trust_region(params, _with_values(params, step.update), odometry, z_range)
         values.update({name: _plain(getattr(params, name)) for name in step.update})
         new_typical = typical_stds(params, odometry, z_range)
@@ -527,11 +539,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                f"(the last moved a noise std by more than {tol:.0%})") + chosen
     if warnings:
         verdict += "; partly calibrated (see warnings)"
-    # Each group's error as its latest fit up to the M-step behind ``params`` stated it.
-    behind = next((i + 1 for i, step in enumerate(m_steps) if step is source), len(m_steps))
-    relative_std = {}
-    for step in m_steps[:behind]:
-        relative_std.update(step.relative_std)
+    relative_std, samples = _stated_errors(m_steps, source, steps)
     return params, CalibrationInfo(done, np.asarray(objective), np.asarray(costs),
                                    np.asarray(typical), values, relative_std, samples,
                                    converged, verdict, tuple(warnings), found,

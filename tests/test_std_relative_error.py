@@ -115,3 +115,20 @@ def test_group_errors_whiten_each_group_as_the_fit_does():
     assert set(group_relative_errors(res, used, motion=False, observation=True)) == {
         "range", "bearing"}
     assert group_relative_errors(res, used, motion=False, observation=False) == {}
+
+
+def test_stated_errors_come_from_the_m_steps_behind_the_returned_settings():
+    """Three M-steps; the settings returned are the second's: its motion error (0.2) and the
+    first's sensor errors (the second fitted no sensor) are stated, not the third's."""
+    from jaxslam.self_calibration import _MStep, _stated_errors
+
+    first = _MStep({}, 1.0, True, True, 400, {"heading": 0.1, "translation": 0.1,
+                                              "range": 0.01, "bearing": 0.01})
+    second = _MStep({}, 1.0, True, False, 0, {"heading": 0.2, "translation": 0.2})
+    third = _MStep({}, 1.0, True, True, 500, {"heading": 0.3, "translation": 0.3,
+                                              "range": 0.03, "bearing": 0.03})
+    errors, samples = _stated_errors([first, second, third], second, 250)
+    assert errors == {"heading": 0.2, "translation": 0.2, "range": 0.01, "bearing": 0.01}
+    assert samples == {"heading": 250, "translation": 250, "range": 400, "bearing": 400}
+    errors, _ = _stated_errors([first, second, third], None, 250)
+    assert errors["range"] == 0.03
