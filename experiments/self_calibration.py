@@ -25,6 +25,7 @@ sampling error of its samples).
 from __future__ import annotations
 
 import argparse
+import pathlib
 import time
 from typing import NamedTuple
 
@@ -170,24 +171,30 @@ def recovery(truth_params, info, odometry, observations,
                     np.abs(total - 1.0) <= half)
 
 
-def _write_recovery(args, recovered):
-    """Append this regime's recovery rows to results/self_calibration/recovery.md."""
-    import pathlib
-
-    table = pathlib.Path("results") / "self_calibration" / "recovery.md"
+def _append_rows(name: str, header: str, rows: str) -> None:
+    """Append ``rows`` to results/self_calibration/``name``, started with ``header`` when
+    the file is new (each call of the script adds its regime's rows)."""
+    table = pathlib.Path("results") / "self_calibration" / name
     table.parent.mkdir(parents=True, exist_ok=True)
     if not table.exists():
-        table.write_text(
-            "EM's typical std / the true one per noise group (the likelihood's scales divided "
-            "out), median [min, max] over runs; the stated 95 % half-width 1.96 x "
-            "relative_std (median); runs whose ratio lies in 1 +- that half-width; runs whose "
-            "group the search scaled; the same with fitted bursts counted in the motion "
-            "groups' std (the mixture's rms, ``Recovery.total_ratio``). One block of rows per "
-            "call (seed, runs).\n\n"
-            "| seed | odometry x Table 1 | sensor x Table 2 | wobble [m] | group | runs | "
-            "EM / true | stated half-width | truth inside | scaled by the search | "
-            "EM / true, bursts counted | truth inside, bursts counted |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+        table.write_text(header)
+    with table.open("a") as handle:
+        handle.write(rows)
+
+
+def _write_recovery(args, recovered):
+    """Append this regime's recovery rows to results/self_calibration/recovery.md."""
+    header = (
+        "EM's typical std / the true one per noise group (the likelihood's scales divided "
+        "out), median [min, max] over runs; the stated 95 % half-width 1.96 x "
+        "relative_std (median); runs whose ratio lies in 1 +- that half-width; runs whose "
+        "group the search scaled; the same with fitted bursts counted in the motion "
+        "groups' std (the mixture's rms, ``Recovery.total_ratio``). One block of rows per "
+        "call (seed, runs).\n\n"
+        "| seed | odometry x Table 1 | sensor x Table 2 | wobble [m] | group | runs | "
+        "EM / true | stated half-width | truth inside | scaled by the search | "
+        "EM / true, bursts counted | truth inside, bursts counted |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     ratio = np.stack([r.ratio for r in recovered])
     half = np.stack([r.half_width for r in recovered])
     inside = np.stack([r.inside for r in recovered])
@@ -195,14 +202,13 @@ def _write_recovery(args, recovered):
     total = np.stack([r.total_ratio for r in recovered])
     total_inside = np.stack([r.total_inside for r in recovered])
     spread = lambda x: f"{np.median(x):.2f} [{x.min():.2f}, {x.max():.2f}]"
-    with table.open("a") as handle:
-        for g, group in enumerate(GROUPS):
-            handle.write(
-                f"| {args.seed} | {args.odometry_scale:g} | {args.sensor_scale:g} | "
-                f"{args.wobble:g} | {group} | {len(recovered)} | {spread(ratio[:, g])} | "
-                f"{np.median(half[:, g]):.3f} | {int(inside[:, g].sum())} of {len(recovered)} "
-                f"| {int(scaled[:, g].sum())} | {spread(total[:, g])} | "
-                f"{int(total_inside[:, g].sum())} of {len(recovered)} |\n")
+    _append_rows("recovery.md", header, "".join(
+        f"| {args.seed} | {args.odometry_scale:g} | {args.sensor_scale:g} | "
+        f"{args.wobble:g} | {group} | {len(recovered)} | {spread(ratio[:, g])} | "
+        f"{np.median(half[:, g]):.3f} | {int(inside[:, g].sum())} of {len(recovered)} "
+        f"| {int(scaled[:, g].sum())} | {spread(total[:, g])} | "
+        f"{int(total_inside[:, g].sum())} of {len(recovered)} |\n"
+        for g, group in enumerate(GROUPS)))
 
 
 def offline_row(args, rows, offline) -> str:
@@ -219,46 +225,31 @@ def offline_row(args, rows, offline) -> str:
 
 def _write_offline(args, rows, offline):
     """Append this regime's ``offline_row`` to results/self_calibration/offline.md."""
-    import pathlib
-
-    out = pathlib.Path("results") / "self_calibration"
-    out.mkdir(parents=True, exist_ok=True)
-    table = out / "offline.md"
-    if not table.exists():
-        table.write_text(
-            "Final position error [m], median over runs (runs over 0.5 m in brackets): online "
-            "(the filter's weighted mean) and offline (the best particle's history smoothed, "
-            "missed loops closed). P = %d, proposal %s.\n\n"
-            "| odometry x Table 1 | sensor x Table 2 | wobble [m] | runs | dead reckoning | "
-            "true noise: online | true noise: offline | calibrated: online | calibrated: "
-            "offline |\n|---|---|---|---|---|---|---|---|---|\n" % (args.particles, args.proposal))
-    with table.open("a") as handle:
-        handle.write(offline_row(args, rows, offline))
+    _append_rows("offline.md", (
+        "Final position error [m], median over runs (runs over 0.5 m in brackets): online "
+        "(the filter's weighted mean) and offline (the best particle's history smoothed, "
+        "missed loops closed). P = %d, proposal %s.\n\n"
+        "| odometry x Table 1 | sensor x Table 2 | wobble [m] | runs | dead reckoning | "
+        "true noise: online | true noise: offline | calibrated: online | calibrated: "
+        "offline |\n|---|---|---|---|---|---|---|---|---|\n" % (args.particles, args.proposal)),
+        offline_row(args, rows, offline))
 
 
 def _write_results(args, rows):
     """Append this regime's row to results/self_calibration/results.md (one row a regime)."""
-    import pathlib
-
-    out = pathlib.Path("results") / "self_calibration"
-    out.mkdir(parents=True, exist_ok=True)
-    table = out / "results.md"
-    if not table.exists():
-        table.write_text(
-            "Final position error [m], median over runs (runs over 0.5 m in brackets); map "
-            "size against trees seen. P = %d, proposal %s.\n\n"
-            "| odometry x Table 1 | sensor x Table 2 | wobble [m] | runs | dead reckoning | "
-            "true noise given | calibrated | calibrated / true (median ratio) | map true / "
-            "calibrated / seen |\n|---|---|---|---|---|---|---|---|---|\n"
-            % (args.particles, args.proposal))
     med = np.median(rows, axis=0)
-    with table.open("a") as handle:
-        handle.write(
-            f"| {args.odometry_scale:g} | {args.sensor_scale:g} | {args.wobble:g} | {len(rows)} "
-            f"| {med[0]:.2f} | {med[1]:.2f} ({int(np.sum(rows[:, 1] > 0.5))}) | {med[2]:.2f} "
-            f"({int(np.sum(rows[:, 2] > 0.5))}) | "
-            f"{np.median(rows[:, 2] / np.maximum(rows[:, 1], 1e-3)):.2f} | {med[3]:.0f} / "
-            f"{med[4]:.0f} / {med[5]:.0f} |\n")
+    _append_rows("results.md", (
+        "Final position error [m], median over runs (runs over 0.5 m in brackets); map "
+        "size against trees seen. P = %d, proposal %s.\n\n"
+        "| odometry x Table 1 | sensor x Table 2 | wobble [m] | runs | dead reckoning | "
+        "true noise given | calibrated | calibrated / true (median ratio) | map true / "
+        "calibrated / seen |\n|---|---|---|---|---|---|---|---|---|\n"
+        % (args.particles, args.proposal)),
+        f"| {args.odometry_scale:g} | {args.sensor_scale:g} | {args.wobble:g} | {len(rows)} "
+        f"| {med[0]:.2f} | {med[1]:.2f} ({int(np.sum(rows[:, 1] > 0.5))}) | {med[2]:.2f} "
+        f"({int(np.sum(rows[:, 2] > 0.5))}) | "
+        f"{np.median(rows[:, 2] / np.maximum(rows[:, 1], 1e-3)):.2f} | {med[3]:.0f} / "
+        f"{med[4]:.0f} / {med[5]:.0f} |\n")
 
 
 def main(argv=None):
