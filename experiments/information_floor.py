@@ -299,8 +299,8 @@ def main(argv=None):
     out, tables, columns, filter_rows = {"sparsest": longest_sparse_stretch(obs.valid)}, [], {}, []
     if not args.no_smooth:
         tick = time.perf_counter()
-        floor = smooth_logs(controls, obs, truth, forest_centres(key_logs, used_forests, args.wobble),
-                            params, per_forest, args.iterations)
+        centres = forest_centres(key_logs, used_forests, args.wobble)
+        floor = smooth_logs(controls, obs, truth, centres, params, per_forest, args.iterations)
         tables += floor_tables(floor, time.perf_counter() - tick, args.iterations)
         out.update({f"map_{k}": v for k, v in floor.items()})
         columns["MAP"] = floor["error"]

@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import pathlib
 import time
+import types
 from typing import NamedTuple
 
 import jax
@@ -34,9 +35,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxslam import lineage, metrics
-from jaxslam.calibration_residuals import typical_stds
+from jaxslam.calibration_residuals import NOISE_GROUPS, typical_stds
 from jaxslam.datasets.odometry import odometry_path
 from jaxslam.filter import estimate, run_filter
+from jaxslam.motion import burst_variance_factor
 from jaxslam.pipeline import offline_path
 from jaxslam.self_calibration import calibrate_params, defensive_bursts, starting_params
 from jaxslam.types import FilterConfig, default_params
@@ -109,7 +111,7 @@ def score(config, key, params, controls, obs, truth, trees):
     return error, int(np.sum(np.asarray(est.active))), int(seen.sum()), found
 
 
-GROUPS = ("heading", "translation", "range", "bearing")
+GROUPS = NOISE_GROUPS
 
 
 class Recovery(NamedTuple):
@@ -142,11 +144,12 @@ def burst_rms_factor(values: dict, no_bursts: tuple[float, float]) -> float:
     kappa = values.get("motion_outlier_scale")
     if eps is None or kappa is None or np.allclose((eps, kappa), no_bursts, rtol=1e-6):
         return 1.0
-    return float(np.sqrt(1.0 - eps + eps * kappa**2))
+    fitted = types.SimpleNamespace(motion_outlier_probability=eps, motion_outlier_scale=kappa)
+    return float(np.sqrt(burst_variance_factor(fitted)))
 
 
 def recovery(truth_params, info, odometry, observations,
-             no_bursts: tuple[float, float] = (0.0, 1.0)) -> Recovery:
+             no_bursts: tuple[float, float]) -> Recovery:
     """``Recovery`` of one calibration. odometry (T, 3): the log's moves (rot1, trans, rot2);
     observations: z (T, K, 2), valid (T, K) (non-finite rows are not counted); no_bursts:
     ``defensive_bursts(config)`` of the calibration (``burst_rms_factor``).

@@ -34,6 +34,10 @@ from jaxslam.host import float64_on_host
 from jaxslam.types import Params
 
 
+NOISE_GROUPS = ("heading", "translation", "range", "bearing")  # ``typical_stds``' order
+NOISE_GROUP_UNITS = ("rad", "m", "m", "rad")
+
+
 class Residuals(NamedTuple):
     """Samples of one smoothed solution (host NumPy, float64).
 

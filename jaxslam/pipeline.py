@@ -198,7 +198,7 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
     history = lineage.trace_lineage(trace.lineage, est.best_particle)  # traced once
     if smooth:
         smoothed, closed = offline_path(history, controls, obs, start, params,
-                                          log.motion_model, visit_gap, close_loops)
+                                        log.motion_model, visit_gap, close_loops)
     valid = np.asarray(obs.valid)
     share, births = history_counts(history, valid)
     values = {"steps": log.num_steps, "num_landmarks": int(np.sum(np.asarray(est.active))),

@@ -52,9 +52,10 @@ Uncertainty: ``CalibrationInfo.relative_std`` is each group's relative standard 
 the spread of the residuals its fit used, whitened (``noise_fit.std_relative_error``: batch
 means, so heavy tails and errors correlated across neighbouring steps widen it; never below
 the chi-square figure 1 / sqrt(2 n) of n independent Gaussian samples). It is the sampling
-error of those residuals only: the error of the path and association EM converged to is not
-in it, and for the motion groups that part is often the larger (docs/results.md,
-self_calibration, "Do the stated intervals hold the truth?").
+error of those residuals only: a bias of EM's estimate (for the motion groups: the burst
+fit's core std on some logs, the path and association EM converged to) is not in it, and
+for the motion groups that part is often the larger (docs/results.md, self_calibration,
+"Do the stated intervals hold the truth?").
 
 Cost: one filter run per iteration (plus the scale search's runs on the same compiled filter:
 7 with the default grid, 6 when EM did not converge), plus the smoother (0.15-0.35 of a run per iteration on
@@ -109,11 +110,12 @@ class CalibrationInfo(NamedTuple):
       values: the final settings, a dict of floats or tuples (the fitted ``Params`` fields).
       relative_std: dict group -> relative standard error of its std (module docstring),
         from the M-steps behind the returned settings: the sampling error of the group's
-        residuals only. On held-out simulated logs (16 logs, 4 regimes) the truth lay within
-        1 +- 1.96 relative_std in 56 of 64 cases for the sensor groups and in 44 of 64 for
-        the motion groups (33 of 64 with the chi-square figure alone), whose error is
-        dominated by the association and path EM converged to (docs/results.md,
-        self_calibration).
+        residuals only. On held-out simulated logs (32: 2 regimes x 2 log sets x 8) the truth
+        lay within 1 +- 1.96 relative_std in 56 of 64 cases for the sensor groups and in 44
+        of 64 for the motion groups (33 of 64 with the chi-square figure alone): EM's motion
+        estimate can sit below the truth, which no spread of the residuals shows (the
+        burst fit's core std on some logs, the path and association EM converged to;
+        docs/results.md, self_calibration). Empty when the starting settings are returned.
       samples: dict group -> number of samples the fit used (the M-steps behind the
         returned settings, as ``relative_std``).
       converged: whether the typical stds stopped moving (``tol``).
@@ -340,9 +342,10 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
 
 def _stated_errors(m_steps: list, source, steps: int) -> tuple[dict, dict]:
     """(relative_std, samples) of ``CalibrationInfo``: each group as its latest fit among
-    the M-steps up to ``source`` (the one behind the returned settings; all of ``m_steps``
-    when ``source`` is none of them) stated it; ``steps`` moves for the motion groups."""
-    behind = next((i + 1 for i, step in enumerate(m_steps) if step is source), len(m_steps))
+    the M-steps up to ``source`` (the one behind the returned settings) stated it; ``steps``
+    moves for the motion groups. Nothing when ``source`` is none of them (the starting
+    settings were returned: no fit lies behind them)."""
+    behind = next((i + 1 for i, step in enumerate(m_steps) if step is source), 0)
     relative_std, samples = {}, {}
     for step in m_steps[:behind]:
         relative_std.update(step.relative_std)

@@ -5,9 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from experiments.mismatch import (CHI2_3DOF_95, filter_settings, main, regime_key,
+from experiments.mismatch import (CHI2_3DOF_95, HEADER, filter_settings, main, regime_key,
                                   run_logs, summary_row)
-from experiments.proposal_study import make_logs
+from experiments.proposal_study import make_logs, wilson
 from experiments.self_calibration import true_params
 from jaxslam.filter import make_filter, scan_filter
 from jaxslam.types import FilterConfig
@@ -21,13 +21,18 @@ def test_summary_row_hand_example():
     outside)."""
     error = np.array([0.2, 1.5, np.nan, 0.9])
     nees = np.array([[1.0, 1.0], [3.0, 2.9], [CHI2_3DOF_95 + 0.1, 12.1], [np.inf, 7.0]])
-    row = summary_row(0.3, 4.0, 1.0, "after", error, nees, 1234.0)
+    row = summary_row(0.3, 4.0, 1.0, "after", error, nees, 1234.0, forests=2)
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[:5] == ["0.3", "4", "1", "after", "4"]
     assert cells[5].startswith("50.0 % [")
-    assert cells[6] == "nan"
-    assert cells[7] == "6.48"
-    assert cells[8] == "62.5 %"
+    # Forests (0.2, 1.5) and (NaN, 0.9): one diverged run each, rates 0.5 and 0.5, no
+    # spread, so the forest interval is Wilson's for 2 of 4 (at the 95 % normal quantile).
+    low, high = wilson(2, 4, 1.959963984540054)
+    assert cells[6] == f"[{100 * low:.1f}, {100 * high:.1f}]" == "[15.0, 85.0]"
+    assert cells[7] == "nan"
+    assert cells[8] == "6.48"
+    assert cells[9] == "62.5 %"
+    assert row.count("|") == HEADER.splitlines()[0].count("|")
 
 
 def test_grid_keys_are_distinct_and_never_shared_with_the_simulation():
@@ -141,8 +146,12 @@ def test_nees_against_a_numpy_reference():
 def test_main_tiny(tmp_path):
     """End to end: one regime, both filters, a table written with its command."""
     out = tmp_path / "table.md"
-    rows = main(["--runs", "2", "--forests", "1", "--chunk", "2", "--particles", "4",
-                 "--steps", "10", "--wobble", "0.3", "--odometry", "2", "--out", str(out)])
+    rows = main(["--runs", "2", "--forests", "2", "--chunk", "2", "--particles", "4",
+                 "--steps", "10", "--wobble", "0.3", "--odometry", "2", "--out", str(out),
+                 "--errors", str(tmp_path / "errors.npz")])
+    saved = np.load(tmp_path / "errors.npz")
+    assert sorted(saved.files) == ["0.3/2/1/after", "0.3/2/1/before"]
+    assert all(saved[k].shape == (2,) for k in saved.files)
     assert [r.split("|")[4].strip() for r in rows] == ["before", "after"]
     text = out.read_text()
     assert text.startswith("`python experiments/mismatch.py --runs 2")

@@ -45,22 +45,35 @@ def test_filter_keys_are_none_of_the_simulations():
 
 
 def test_clustered_interval_by_hand():
-    """4 forests of 5 runs, exceeding in 0, 1, 2 and 5 runs: rates 0, 0.2, 0.4, 1.0, mean
-    0.4, sample std sqrt(((0.4)^2 + 0.2^2 + 0 + 0.6^2) / 3) = sqrt(0.56 / 3) = 0.4320, SE
-    0.2160: 0.4 +- 1.96 x 0.2160 = [0, 0.8234] (the low end clipped at 0)."""
-    exceed = np.zeros((4, 5), bool)
-    exceed[1, :1] = exceed[2, :2] = exceed[3, :] = True
+    """4 forests of 10 runs, exceeding in 1, 4, 7 and 4: rates 0.1, 0.4, 0.7, 0.4, mean 0.4,
+    sample std sqrt((0.09 + 0 + 0.09 + 0) / 3) = 0.24495, SE 0.12247, Student t with 3
+    degrees of freedom 3.18245: 0.4 +- 0.38977 = [0.0102, 0.7898], wider than Wilson's
+    [0.2635, 0.5540] for 16 of 40 on both sides."""
+    exceed = np.zeros((4, 10), bool)
+    for forest, count in enumerate((1, 4, 7, 4)):
+        exceed[forest, :count] = True
     low, high = clustered_interval(exceed.ravel(), 4)
-    assert low == 0.0
-    np.testing.assert_allclose(high, 0.4 + 1.96 * np.sqrt(0.56 / 3) / 2, rtol=1e-12)
+    half = 3.182446305284263 * np.sqrt(0.06) / 2
+    np.testing.assert_allclose([low, high], [0.4 - half, 0.4 + half], rtol=1e-9)
+
+
+def test_clustered_interval_is_never_narrower_than_wilson():
+    """Forests with equal rates (no spread) or no event at all: the binomial width stands
+    (Wilson at the normal quantile of the level, 1.959964 for 95 %)."""
+    z = 1.959963984540054
+    even = np.tile(np.r_[np.ones(2, bool), np.zeros(8, bool)], 10)  # 2 of 10 in each forest
+    np.testing.assert_allclose(clustered_interval(even, 10), wilson(20, 100, z), rtol=1e-9)
+    low, high = clustered_interval(np.zeros(200, bool), 10)
+    assert low == 0.0 and high == wilson(0, 200, z)[1] > 0.0
 
 
 def test_clustered_interval_covers_when_the_rate_depends_on_the_forest():
     """Simulated studies like the proposal study's (50 forests x 20 runs), each forest's own
     rate drawn from Beta(1.2, 2.8) (mean 0.3; forest-to-forest spread like the default's at
     the hard point, design effect ~5): over 400 studies the forest-clustered interval holds
-    the true mean in 90-99 % (nominal 95 %; 50 clusters, normal quantile), the binomial
-    Wilson interval over runs in under 70 %."""
+    the true mean in 90-99 % (nominal 95 %), the binomial Wilson interval over runs in
+    under 70 %. And a rare event over few forests (10 x 20 runs, every forest at 1 %): the
+    forest interval holds 1 % at least as often as Wilson's, in 90 % or more."""
     rng = np.random.default_rng(7)
     hold, hold_wilson = 0, 0
     for _ in range(400):
@@ -72,6 +85,14 @@ def test_clustered_interval_covers_when_the_rate_depends_on_the_forest():
         hold_wilson += low <= 0.3 <= high
     assert 0.90 <= hold / 400 <= 0.99
     assert hold_wilson / 400 < 0.7
+    rare, rare_wilson = 0, 0
+    for _ in range(400):
+        exceed = rng.random(200) < 0.01
+        low, high = clustered_interval(exceed, 10)
+        rare += low <= 0.01 <= high
+        low, high = wilson(int(exceed.sum()), exceed.size)
+        rare_wilson += low <= 0.01 <= high
+    assert rare >= rare_wilson and rare / 400 >= 0.9
 
 
 @pytest.mark.parametrize("runs, forests", [(10, 1), (10, 3), (0, 0)])

@@ -33,7 +33,7 @@ def test_recovery_hand_example():
     info = types.SimpleNamespace(
         typical_std=np.stack([true * 3.0, true * factor]), noise_scales=None, values={},
         relative_std={"heading": 0.01, "translation": 0.1, "range": 0.05, "bearing": 0.001})
-    found = recovery(truth, info, ODOMETRY, OBS)
+    found = recovery(truth, info, ODOMETRY, OBS, (0.05, 8.0))
     np.testing.assert_allclose(found.ratio, factor, rtol=1e-12)
     np.testing.assert_array_equal(found.total_ratio, found.ratio)  # no bursts fitted
     np.testing.assert_allclose(found.half_width, 1.96 * np.array([0.01, 0.1, 0.05, 0.001]),
@@ -41,7 +41,7 @@ def test_recovery_hand_example():
     np.testing.assert_array_equal(found.inside, [True, False, False, False])
     assert not found.scaled.any()
     del info.relative_std["bearing"]
-    found = recovery(truth, info, ODOMETRY, OBS)
+    found = recovery(truth, info, ODOMETRY, OBS, (0.05, 8.0))
     assert np.isinf(found.half_width[3]) and found.inside[3]
 
 
@@ -56,13 +56,13 @@ def test_recovery_divides_out_the_search_scales():
         typical_std=np.stack([_true_typical(truth), returned]),
         noise_scales=types.SimpleNamespace(motion_scale=2.0, observation_scale=4.0), values={},
         relative_std={"heading": 0.01, "translation": 0.01, "range": 0.01, "bearing": 0.01})
-    found = recovery(truth, info, ODOMETRY, OBS)
+    found = recovery(truth, info, ODOMETRY, OBS, (0.05, 8.0))
     np.testing.assert_allclose(found.ratio, np.ones(4), rtol=1e-6)  # float32 Params
     assert found.inside.all() and found.scaled.all()
     info.noise_scales = types.SimpleNamespace(motion_scale=2.0, observation_scale=1.0)
     info.typical_std = np.stack([_true_typical(truth),
                                  _true_typical(scaled_noise(truth, 2.0, 1.0))])
-    found = recovery(truth, info, ODOMETRY, OBS)
+    found = recovery(truth, info, ODOMETRY, OBS, (0.05, 8.0))
     np.testing.assert_array_equal(found.scaled, [True, True, False, False])
 
 
@@ -136,19 +136,23 @@ def test_offline_table_by_hand(tmp_path, monkeypatch):
                      "0.300 (1)"]
 
 
-def test_offline_error_on_a_short_log():
-    """A 60-step log with the true noise: the smoothed, loop-closed estimate is a finite
-    error, and with the truth's own noise on a log this short it ends within 0.5 m (the
-    filter alone does too: dead reckoning over 30 m at 1x Table 1 drifts decimetres)."""
+def test_offline_error_closes_what_the_online_estimate_misses():
+    """Run 0 of the held-out seed-500 logs with a sensor 5x Table 2 (wobbly loop, 2x
+    odometry), the filter given the true noise at P = 20: the online estimate ends metres
+    off (3.10 m here, with the test tier's float64 arrays), the smoothed history with the
+    missed loop closed under a quarter of that (0.72 m). The bound is the claim the docs
+    make of the offline estimate (far better than online on such logs), not a tolerance:
+    a single log's offline error is not always under 0.5 m (0-2 of 8 logs a row in the
+    docs' table)."""
     import jax
 
-    from experiments.self_calibration import make_log, offline_error
+    from experiments.self_calibration import make_log, offline_error, score
     from jaxslam.types import FilterConfig
 
-    params = true_params(1.0, 2.0)
-    controls, obs, truth, _ = make_log(jax.random.PRNGKey(3), params, 0.0)
-    controls, truth = controls[:60], truth[:61]
-    obs = jax.tree.map(lambda a: a[:60], obs)
-    config = FilterConfig(num_particles=8, max_landmarks=64, max_obs=12)
-    error = offline_error(config, jax.random.PRNGKey(4), params, controls, obs, truth)
-    assert np.isfinite(error) and 0.0 <= error < 0.5
+    params = true_params(2.0, 5.0)
+    key_log, key_filter = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(500), 0))
+    controls, obs, truth, trees = make_log(key_log, params, 0.3)
+    config = FilterConfig(num_particles=20, max_landmarks=96, max_obs=12)
+    online, _, _, _ = score(config, key_filter, params, controls, obs, truth, trees)
+    offline = offline_error(config, key_filter, params, controls, obs, truth)
+    assert online > 1.0 and 0.0 <= offline < 0.25 * online

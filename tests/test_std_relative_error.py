@@ -64,10 +64,22 @@ def test_intervals_hold_the_truth_on_heavy_tailed_samples():
     (np.zeros(0), np.inf),                                   # nothing fitted
     (np.full(5, np.nan), np.inf),                           # nothing finite
     (np.arange(1.0, 11.0), _gaussian_figure(10)),            # under 16 samples
+    (np.r_[np.ones(14), 30.0], _gaussian_figure(15)),        # 15: still the floor
     (np.zeros(100), _gaussian_figure(100)),                  # no spread at all
 ])
 def test_edges(white, expected):
     assert std_relative_error(white) == expected
+
+
+def test_sixteen_samples_use_the_batches():
+    """At 16 samples (4 batches of 4) the batch estimate applies: one huge residual in the
+    last batch puts the batch means at 1, 1, 1 and (3 + 900) / 4 = 225.75, far over the
+    Gaussian figure (0.49 against 0.18)."""
+    white = np.r_[np.ones(15), 30.0]
+    means = np.array([1.0, 1.0, 1.0, (3.0 + 900.0) / 4])
+    expected = 0.5 * np.std(means, ddof=1) / 2.0 / np.mean(white**2)
+    np.testing.assert_allclose(std_relative_error(white), expected, rtol=1e-12)
+    assert std_relative_error(white) > 2 * _gaussian_figure(16)
 
 
 def test_non_finite_samples_are_dropped():
@@ -130,5 +142,6 @@ def test_stated_errors_come_from_the_m_steps_behind_the_returned_settings():
     errors, samples = _stated_errors([first, second, third], second, 250)
     assert errors == {"heading": 0.2, "translation": 0.2, "range": 0.01, "bearing": 0.01}
     assert samples == {"heading": 250, "translation": 250, "range": 400, "bearing": 400}
-    errors, _ = _stated_errors([first, second, third], None, 250)
-    assert errors["range"] == 0.03
+    assert _stated_errors([first, second, third], third, 250)[0]["range"] == 0.03
+    # The starting settings returned (no M-step behind them): nothing is stated.
+    assert _stated_errors([first, second, third], None, 250) == ({}, {})

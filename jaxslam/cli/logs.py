@@ -75,23 +75,35 @@ def _load_robot_log(path, args=None):
     return log
 
 
-_NOISE_GROUPS = (("heading", "rad"), ("translation", "m"), ("range", "m"), ("bearing", "rad"))
+def _percent(value: float) -> str:
+    """A percentage to two significant digits, without exponent: 11, 2.5, 0.26."""
+    return f"{value:.0f}" if value >= 10 else f"{value:.2g}"
 
 
 def _print_calibration(info) -> None:
+    from jaxslam.calibration_residuals import NOISE_GROUP_UNITS, NOISE_GROUPS
+
     print(f"calibration: {info.verdict} ({info.iterations} iterations)")
     for name, value in info.values.items():
         text = (f"{value:.6g}" if isinstance(value, float)
                 else "(" + ", ".join(f"{v:.6g}" for v in value) + ")")
         print(f"  {name:<24} {text}")
-    if info.relative_std and len(info.typical_std):
-        print("  typical noise std over this log (rms of the model's std), +- the 95 % "
-              "interval of its residuals' sampling error (the path and association EM "
-              "settled on are not counted: docs/cli.md):")
-        for group, (name, unit) in enumerate(_NOISE_GROUPS):
-            if name in info.relative_std:
-                print(f"    {name:<12} {info.typical_std[-1, group]:.4g} {unit} +- "
-                      f"{196 * info.relative_std[name]:.0f} %")
+    if not info.relative_std or not len(info.typical_std):
+        return
+    found = info.noise_scales
+    scales = ((1.0, 1.0) if found is None else (found.motion_scale, found.observation_scale))
+    print("  noise std fitted by EM (rms over this log) +- 95 % relative interval "
+          "(sampling error only; docs/cli.md):")
+    for group, (name, unit) in enumerate(zip(NOISE_GROUPS, NOISE_GROUP_UNITS)):
+        if name not in info.relative_std:
+            continue
+        scale = scales[0] if group < 2 else scales[1]
+        used = float(info.typical_std[-1, group])
+        line = (f"    {name:<12} {used / scale:.4g} {unit} +- "
+                f"{_percent(196 * info.relative_std[name])} %")
+        if scale != 1.0:
+            line += f"  (x{scale:g} by the likelihood's search: {used:.4g} {unit} used)"
+        print(line)
 
 
 def _print_warnings(lines) -> None:
