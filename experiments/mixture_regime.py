@@ -67,8 +67,8 @@ def main(argv=None):
         for v in variants:
             params = truth._replace(motion_outlier_probability=jnp.float32(v[1]),
                                     motion_outlier_scale=jnp.float32(v[2]))
-            error, size, seen, _ = score(variant_config(v, args.particles), key_filter, params,
-                                         controls, obs, poses, trees)
+            error, size, seen, _, _ = score(variant_config(v, args.particles), key_filter, params,
+                                            controls, obs, poses, trees)
             results[v].append((error, size, seen))
     for v, rows in results.items():
         rows = np.asarray(rows)

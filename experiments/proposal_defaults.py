@@ -49,8 +49,8 @@ def main(argv=None):
             params = truth._replace(motion_outlier_probability=jnp.float32(v[1]),
                                     motion_outlier_scale=jnp.float32(v[2]))
             start = time.perf_counter()
-            error, size, seen, _ = score(variant_config(v, particles), key_filter, params,
-                                         controls, obs, poses, trees)
+            error, size, seen, _, _ = score(variant_config(v, particles), key_filter, params,
+                                            controls, obs, poses, trees)
             if run > 0:
                 seconds[v] += time.perf_counter() - start
             results[v].append((error, size, seen))

@@ -24,6 +24,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.stats
 
 from experiments.mixture_regime import regime_params
 from experiments.self_calibration import SIZE, wobbly_loop
@@ -93,8 +94,6 @@ def clustered_interval(exceed, forests: int, level: float = 0.95):
     least uncertainty 1000 runs can have. exceed: (R,) bool, R a multiple of ``forests``
     (>= 2).
     """
-    import scipy.stats
-
     exceed = np.asarray(exceed, bool)
     if forests < 2 or exceed.size % forests:
         raise ValueError(f"need >= 2 forests dividing the {exceed.size} runs; got {forests}")

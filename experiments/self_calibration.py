@@ -40,7 +40,8 @@ from jaxslam.datasets.odometry import odometry_path
 from jaxslam.filter import estimate, run_filter
 from jaxslam.motion import burst_variance_factor
 from jaxslam.pipeline import offline_path
-from jaxslam.self_calibration import calibrate_params, defensive_bursts, starting_params
+from jaxslam.self_calibration import (calibrate_params, defensive_bursts, em_typical_std,
+                                      group_scales, starting_params)
 from jaxslam.types import FilterConfig, default_params
 from sims.forest import random_forest
 from sims.paths import resample_polyline
@@ -84,13 +85,11 @@ def make_log(key, params, wobble: float = 0.3):
             scenario.poses[0], forest.centres)
 
 
-def offline_error(config, key, params, controls, obs, truth) -> float:
-    """Final position error [m] of the offline estimate of the filter run ``score`` makes
-    (same key): the best particle's history smoothed with the loops the filter missed
-    closed (``pipeline.offline_path``, as ``jaxslam run --smooth --close-loops``); inf when
-    the smoother fails."""
-    final, trace = run_filter(config, key, params, controls, obs, truth[0],
-                              record_lineage=True)
+def offline_error(config, params, final, trace, controls, obs, truth) -> float:
+    """Final position error [m] of the offline estimate of a filter run with its lineage
+    (``final``, ``trace``): the best particle's history smoothed with the loops the filter
+    missed closed (``pipeline.offline_path``, as ``jaxslam run --smooth --close-loops``);
+    inf when the smoother fails."""
     history = lineage.trace_lineage(trace.lineage, estimate(final).best_particle)
     try:
         path, _ = offline_path(history, controls, obs, truth[0], params, config.motion_model,
@@ -100,22 +99,25 @@ def offline_error(config, key, params, controls, obs, truth) -> float:
     return float(np.hypot(*(np.asarray(path[-1, :2]) - np.asarray(truth[-1, :2]))))
 
 
-def score(config, key, params, controls, obs, truth, trees):
-    final, trace = run_filter(config, key, params, controls, obs, truth[0])
+def score(config, key, params, controls, obs, truth, trees, offline: bool = False):
+    """One filter run: (online final error [m], landmarks, trees seen, map metrics, offline
+    final error [m]: ``offline_error`` of the same run with ``offline``, else NaN). The
+    lineage recorded for the offline estimate does not change the run's draws."""
+    final, trace = run_filter(config, key, params, controls, obs, truth[0],
+                              record_lineage=offline)
     est = estimate(final)
     error = float(np.hypot(*(np.asarray(trace.mean_pose[-1, :2]) - np.asarray(truth[-1, :2]))))
+    after = (offline_error(config, params, final, trace, controls, obs, truth) if offline
+             else float("nan"))
     seen = np.zeros(len(trees), bool)
     ids = np.asarray(obs.landmark_id)[np.asarray(obs.valid)]
     seen[ids] = True
     found = metrics.map_metrics(est.landmark_mean, est.active, trees, jnp.asarray(seen), 1.0)
-    return error, int(np.sum(np.asarray(est.active))), int(seen.sum()), found
-
-
-GROUPS = NOISE_GROUPS
+    return error, int(np.sum(np.asarray(est.active))), int(seen.sum()), found, after
 
 
 class Recovery(NamedTuple):
-    """Noise recovery of one run, per group (4,) in ``GROUPS`` order.
+    """Noise recovery of one run, per group (4,) in ``NOISE_GROUPS`` order.
 
     ratio: EM's typical std over the true model's on the same log. half_width: the stated
     95 % half-width 1.96 x ``relative_std`` (inf for a group not fitted). inside: |ratio - 1|
@@ -154,20 +156,15 @@ def recovery(truth_params, info, odometry, observations,
     observations: z (T, K, 2), valid (T, K) (non-finite rows are not counted); no_bursts:
     ``defensive_bursts(config)`` of the calibration (``burst_rms_factor``).
 
-    ``info.typical_std[-1]`` is the returned settings' typical std, after the likelihood's
-    noise scales (s_m on heading and translation, s_o on range and bearing: each scales
-    every coefficient of its group, so the typical std scales with it); EM's own is that
-    divided by the scales."""
+    The ratio is EM's own estimate (``self_calibration.em_typical_std``: the likelihood
+    search's scales divided out) over the truth's."""
     z = np.asarray(observations.z, np.float64)
     valid = np.asarray(observations.valid) & np.all(np.isfinite(z), axis=-1)
     true = np.asarray(typical_stds(truth_params, np.asarray(odometry, np.float64),
                                    z[valid][:, 0]))
-    found = info.noise_scales
-    motion, sensor = ((1.0, 1.0) if found is None
-                      else (found.motion_scale, found.observation_scale))
-    scales = np.array([motion, motion, sensor, sensor], np.float64)
-    ratio = np.asarray(info.typical_std[-1], np.float64) / scales / true
-    half = np.array([1.96 * info.relative_std.get(g, np.inf) for g in GROUPS])
+    scales = group_scales(info)
+    ratio = em_typical_std(info) / true
+    half = np.array([1.96 * info.relative_std.get(g, np.inf) for g in NOISE_GROUPS])
     bursts = burst_rms_factor(info.values, no_bursts)
     total = ratio * np.array([bursts, bursts, 1.0, 1.0])
     return Recovery(ratio, half, np.abs(ratio - 1.0) <= half, scales != 1.0, total,
@@ -211,7 +208,7 @@ def _write_recovery(args, recovered):
         f"{np.median(half[:, g]):.3f} | {int(inside[:, g].sum())} of {len(recovered)} "
         f"| {int(scaled[:, g].sum())} | {spread(total[:, g])} | "
         f"{int(total_inside[:, g].sum())} of {len(recovered)} |\n"
-        for g, group in enumerate(GROUPS)))
+        for g, group in enumerate(NOISE_GROUPS)))
 
 
 def offline_row(args, rows, offline) -> str:
@@ -280,20 +277,19 @@ def main(argv=None):
         controls, obs, truth, trees = make_log(key_log, truth_params, args.wobble)
         dr = odometry_path(np.asarray(controls), np.asarray(truth[0]))
         dr_error = float(np.hypot(*(dr[-1, :2] - np.asarray(truth[-1, :2]))))
-        true_error, true_map, seen, _ = score(config, key_filter, truth_params, controls, obs,
-                                              truth, trees)
+        true_error, true_map, seen, _, true_offline = score(
+            config, key_filter, truth_params, controls, obs, truth, trees, args.offline)
         start = time.perf_counter()
         calibrated, info = calibrate_params(config, key_filter, controls, obs, truth[0],
                                             starting_params(config))
         seconds = time.perf_counter() - start
-        cal_error, cal_map, _, _ = score(config, key_filter, calibrated, controls, obs,
-                                         truth, trees)
+        cal_error, cal_map, _, _, cal_offline = score(
+            config, key_filter, calibrated, controls, obs, truth, trees, args.offline)
         rows.append((dr_error, true_error, cal_error, true_map, cal_map, seen))
         recovered.append(recovery(truth_params, info, controls, obs,
                                   defensive_bursts(config)))
         if args.offline:
-            offline.append([offline_error(config, key_filter, p, controls, obs, truth)
-                            for p in (truth_params, calibrated)])
+            offline.append([true_offline, cal_offline])
             print(f"   offline (smoothed, loops closed): true noise {offline[-1][0]:.3f} m, "
                   f"calibrated {offline[-1][1]:.3f} m")
         print(f"run {run}: dead reckoning {dr_error:.3f} m | true noise {true_error:.3f} m, "
@@ -301,12 +297,12 @@ def main(argv=None):
               f"({seen} trees seen) | {info.iterations} iterations, {seconds:.1f} s, "
               f"{info.verdict}")
         print("   fitted:", {k: v for k, v in info.values.items()})
-        print("   EM / true typical std:", dict(zip(GROUPS, recovered[-1].ratio.round(3))),
-              "within the stated 95 % interval:", dict(zip(GROUPS, recovered[-1].inside)),
+        print("   EM / true typical std:", dict(zip(NOISE_GROUPS, recovered[-1].ratio.round(3))),
+              "within the stated 95 % interval:", dict(zip(NOISE_GROUPS, recovered[-1].inside)),
               "(scaled by the search)" if recovered[-1].scaled.any() else "")
-        print("   with fitted bursts counted:", dict(zip(GROUPS,
+        print("   with fitted bursts counted:", dict(zip(NOISE_GROUPS,
                                                       recovered[-1].total_ratio.round(3))),
-              "within:", dict(zip(GROUPS, recovered[-1].total_inside)))
+              "within:", dict(zip(NOISE_GROUPS, recovered[-1].total_inside)))
     rows = np.asarray(rows)
     med = np.median(rows, axis=0)
     _write_results(args, rows)

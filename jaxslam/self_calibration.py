@@ -426,6 +426,23 @@ def _scale_search(config, key, params, controls, observations, start, scales, la
                            f"x{found.motion_scale:g}, observation x{found.observation_scale:g}")
 
 
+def group_scales(info: CalibrationInfo) -> np.ndarray:
+    """(4,) the likelihood search's multiplier of each noise group (``NOISE_GROUPS`` order:
+    s_m on heading and translation, s_o on range and bearing; ones without a search)."""
+    found = info.noise_scales
+    motion, sensor = (1.0, 1.0) if found is None else (found.motion_scale,
+                                                       found.observation_scale)
+    return np.array([motion, motion, sensor, sensor], np.float64)
+
+
+def em_typical_std(info: CalibrationInfo) -> np.ndarray:
+    """(4,) EM's own typical std of each noise group, the estimate ``relative_std``
+    describes: ``typical_std[-1]`` (the returned settings, after the search) divided by the
+    search's scales (each scales every coefficient of its group, so the typical std scales
+    with it)."""
+    return np.asarray(info.typical_std[-1], np.float64) / group_scales(info)
+
+
 def calibrate_params(config: FilterConfig, key, controls, observations: Observations,
                      initial_pose=None, params: Params | None = None, *,
                      motion_model: str | None = None, iterations: int = 6, tol: float = 0.05,

@@ -507,3 +507,27 @@ def test_params_file_errors(tmp_path):
         pipeline.load_params(tmp_path / "empty.toml")
     with pytest.raises(ValueError, match="cannot read"):
         pipeline.load_params(tmp_path / "absent.toml")
+
+
+def test_calibration_print_divides_the_search_scale_out(capsys):
+    """The printed std is EM's (the interval describes it): the returned settings' typical
+    std over the search's scale, with the factor and the std used beside it; an unscaled
+    group prints alone, an unfitted one not at all."""
+    import types
+
+    from jaxslam.cli.logs import _print_calibration
+
+    info = types.SimpleNamespace(
+        verdict="converged", iterations=2, values={},
+        typical_std=np.array([[9.0, 9.0, 9.0, 9.0], [0.04, 0.2, 0.05, 0.01]]),
+        noise_scales=types.SimpleNamespace(motion_scale=2.0, observation_scale=1.0),
+        relative_std={"heading": 0.05, "translation": 0.1, "range": 0.001})
+    _print_calibration(info)
+    lines = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines()
+             if line.startswith("    ") and "+-" in line}
+    assert set(lines) == {"heading", "translation", "range"}
+    assert lines["heading"][1:6] == ["0.02", "rad", "+-", "9.8", "%"]
+    assert lines["heading"][6:] == ["(x2", "by", "the", "likelihood's", "search:", "0.04",
+                                    "rad", "used)"]
+    assert lines["translation"][1:6] == ["0.1", "m", "+-", "20", "%"]
+    assert lines["range"][1:] == ["0.05", "m", "+-", "0.2", "%"]

@@ -82,6 +82,7 @@ def _percent(value: float) -> str:
 
 def _print_calibration(info) -> None:
     from jaxslam.calibration_residuals import NOISE_GROUP_UNITS, NOISE_GROUPS
+    from jaxslam.self_calibration import em_typical_std, group_scales
 
     print(f"calibration: {info.verdict} ({info.iterations} iterations)")
     for name, value in info.values.items():
@@ -90,19 +91,17 @@ def _print_calibration(info) -> None:
         print(f"  {name:<24} {text}")
     if not info.relative_std or not len(info.typical_std):
         return
-    found = info.noise_scales
-    scales = ((1.0, 1.0) if found is None else (found.motion_scale, found.observation_scale))
+    scales, fitted = group_scales(info), em_typical_std(info)
     print("  noise std fitted by EM (rms over this log) +- 95 % relative interval "
           "(sampling error only; docs/cli.md):")
     for group, (name, unit) in enumerate(zip(NOISE_GROUPS, NOISE_GROUP_UNITS)):
         if name not in info.relative_std:
             continue
-        scale = scales[0] if group < 2 else scales[1]
-        used = float(info.typical_std[-1, group])
-        line = (f"    {name:<12} {used / scale:.4g} {unit} +- "
+        line = (f"    {name:<12} {fitted[group]:.4g} {unit} +- "
                 f"{_percent(196 * info.relative_std[name])} %")
-        if scale != 1.0:
-            line += f"  (x{scale:g} by the likelihood's search: {used:.4g} {unit} used)"
+        if scales[group] != 1.0:
+            line += (f"  (x{scales[group]:g} by the likelihood's search: "
+                     f"{info.typical_std[-1, group]:.4g} {unit} used)")
         print(line)
 
 
