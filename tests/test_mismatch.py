@@ -77,8 +77,9 @@ def test_filter_loop_matches_scan_filter():
     position error must be the library's: ``scan_filter`` with the same per-run keys, final
     weighted mean against the truth. Both run the same float32 step, one vmapped in a jit and
     one not, so only XLA's fusion order may round differently: ~1e-6 m at coordinates of
-    ~30 m; atol 1e-5 m. (Should rounding ever flip a resampling draw the runs would part by
-    centimetres and this would fail: re-check the keys before loosening it.)"""
+    ~30 m with full optimisation, 3.4e-5 m at the test tier's lower backend optimisation
+    (tests/conftest.py); atol 1e-4 m. (Should rounding ever flip a resampling draw the runs
+    would part by centimetres and this would fail: re-check the keys before loosening it.)"""
     key = jax.random.PRNGKey(3)
     controls, obs, truth, _ = make_logs(key, true_params(2.0, 1.0), 0.3, 2, 1)
     controls, truth = controls[:, :12], truth[:, :13]
@@ -95,7 +96,7 @@ def test_filter_loop_matches_scan_filter():
             _, trace = scan_filter(config, keys[run], state, params, controls[run],
                                    jax.tree.map(lambda a, r=run: a[r], obs))
             want = np.hypot(*(np.asarray(trace.mean_pose[-1, :2]) - truth[run, -1, :2]))
-            np.testing.assert_allclose(error[run], want, atol=1e-5)
+            np.testing.assert_allclose(error[run], want, atol=1e-4)
 
 
 def _nees_reference(pose, log_weight, true_pose, floor):

@@ -2,6 +2,7 @@
 import types
 
 import numpy as np
+import pytest
 import jax.numpy as jnp
 
 from experiments.self_calibration import (Recovery, _write_offline, _write_recovery, recovery,
@@ -136,6 +137,7 @@ def test_offline_table_by_hand(tmp_path, monkeypatch):
                      "0.300 (1)"]
 
 
+@pytest.mark.optimized
 def test_offline_error_closes_what_the_online_estimate_misses():
     """Run 0 of the held-out seed-500 logs with a sensor 5x Table 2 (wobbly loop, 2x
     odometry), the filter given the true noise at P = 20: the online estimate ends metres
