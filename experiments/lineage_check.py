@@ -46,8 +46,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.information_floor import (PURE_GAUSSIAN, dead_reckoning, filter_errors,
-                                           rate_row, sparse_rows, write_outputs)
+from experiments.information_floor import (PURE_GAUSSIAN, RATE_HEADER, dead_reckoning,
+                                           filter_errors, rate_row, sparse_rows, write_outputs)
 from experiments.mixture_regime import regime_params
 from experiments.proposal_study import (longest_sparse_stretch, make_logs, point_keys,
                                         proposal_settings, wilson)
@@ -411,9 +411,9 @@ def split_table(table: dict) -> str:
             "quartiles [m] |\n|---|---|---|---|\n" + "\n".join(rows))
 
 
-def tables(table: dict) -> list[str]:
+def tables(table: dict, forests: int) -> list[str]:
     """The markdown tables of the per-log arrays ``table`` (``check_log``'s fields, ``online``
-    and ``sparsest``)."""
+    and ``sparsest``) of logs over ``forests`` forests."""
     runs = table["online"].size
     errors = {"online": "online (weighted mean)", "best": "best particle's history",
               "smoothed": "MAP on the history's own association"}
@@ -421,10 +421,9 @@ def tables(table: dict) -> list[str]:
                "(gap <= 2 steps) merged", "oracle_loop": "ORACLE: MAP, own association with "
                "re-sightings after > 40 steps merged (loop closure)",
                "oracle_all": "ORACLE: MAP, own association with every split merged"}
-    out = ["| estimate | logs | final error > 1 m [95 % CI] | median final error [m] |\n"
-           "|---|---|---|---|\n" + "\n".join(rate_row(label, table[name] > 1, runs,
-                                                     table[name])
-                                             for name, label in {**errors, **oracles}.items())]
+    out = [RATE_HEADER + "\n|---|---|---|---|---|\n" + "\n".join(
+        rate_row(label, table[name] > 1, runs, table[name], forests)
+        for name, label in {**errors, **oracles}.items())]
     ratio = table["identities"] / np.maximum(table["trees"], 1)
     out.append(
         f"Association of the best history (medians over {runs} logs): {np.median(ratio):.2f} "
@@ -522,6 +521,12 @@ def add_regime_arguments(parser: argparse.ArgumentParser) -> None:
                              "the logs whose online final error it reproduces bit for bit")
 
 
+def forests_of(args: argparse.Namespace) -> int:
+    """Forests behind the first ``args.first`` of ``args.runs`` logs (``make_logs``' order)."""
+    first = args.runs if args.first is None else args.first
+    return first // (args.runs // args.forests)
+
+
 def regime_histories(args: argparse.Namespace):
     """information_floor.main's logs, keys and params (so its filter column is reproduced) and
     the filter's lineage runs on them. Returns (first: the logs used, controls (R, T, 3), obs
@@ -590,7 +595,8 @@ def main(argv=None):
                   for name in per_loop[0]})
     table.update({f"split_{name}": np.concatenate([split[name] for split in per_split])
                   for name in per_split[0]})
-    write_outputs("lineage_check.py", argv, [" ".join(notes)] + tables(table), table, args.out)
+    write_outputs("lineage_check.py", argv, [" ".join(notes)] + tables(table, forests_of(args)),
+                  table, args.out)
 
 
 if __name__ == "__main__":

@@ -33,8 +33,9 @@ import time
 import jax
 import numpy as np
 
-from experiments.information_floor import PURE_GAUSSIAN, rate_row, write_outputs
-from experiments.lineage_check import (add_regime_arguments, association_quality,
+from experiments.information_floor import (PURE_GAUSSIAN, RATE_HEADER, rate_row,
+                                           write_outputs)
+from experiments.lineage_check import (add_regime_arguments, association_quality, forests_of,
                                        position_error, regime_histories)
 from jaxslam.lineage import LineagePath, landmark_identities
 from jaxslam.loop_closure import MAX_RISE_PER_DOF, close_loops
@@ -106,15 +107,14 @@ def join_table(table: dict) -> str:
             + "\n".join(rows))
 
 
-def tables(table: dict) -> list[str]:
-    """Markdown sections of the per-log arrays ``table``."""
+def tables(table: dict, forests: int) -> list[str]:
+    """Markdown sections of the per-log arrays ``table`` of logs over ``forests`` forests."""
     runs = table["online"].size
-    rows = [rate_row(label, table[name] > 1, runs, table[name]) for name, label in (
+    rows = [rate_row(label, table[name] > 1, runs, table[name], forests) for name, label in (
         ("online", "online (weighted mean)"),
         ("own", "MAP on the best history's own association"),
         ("closed", "MAP after close_loops (registration + cost test + tested merges)"))]
-    out = ["| estimate | logs | final error > 1 m [95 % CI] | median final error [m] |\n"
-           "|---|---|---|---|\n" + "\n".join(rows)]
+    out = [RATE_HEADER + "\n|---|---|---|---|---|\n" + "\n".join(rows)]
     impure = table["closed_purity"] < 1
     ratio = table["closed_identities"] / np.maximum(table["closed_trees"], 1)
     all_loop = table["closed_loop_closed_trees"] == table["closed_loop_trees"]
@@ -167,7 +167,7 @@ def main(argv=None):
                                              else np.int64 if name in ("kind", "log")
                                              else bool)
                   for name, values in joins.items()})
-    write_outputs("loop_closure_study.py", argv, [" ".join(notes)] + tables(table), table,
+    write_outputs("loop_closure_study.py", argv, [" ".join(notes)] + tables(table, forests_of(args)), table,
                   args.out)
 
 

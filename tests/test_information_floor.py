@@ -137,3 +137,23 @@ def test_map_with_true_association_beats_dead_reckoning_and_truth(logs):
                     else floor.from_dead_reckoning)
         assert floor.error == expected
         np.testing.assert_allclose(floor.chi2_at_truth[2:], 1.0, atol=0.5)
+
+
+def test_rate_row_puts_the_forests_interval_beside_wilson():
+    """4 forests x 10 logs, all 10 logs of forest 0 over 1 m and none of the others: the rate
+    is 25 %, Wilson's interval (independent logs) is about [14, 40] %, and the forests'
+    interval (t with 3 degrees of freedom over the rates 1, 0, 0, 0) is clipped to [0, 1]
+    and wider. One forest: no forest interval, '-'."""
+    from experiments.information_floor import RATE_HEADER, rate_row
+    from experiments.proposal_study import clustered_interval, wilson
+
+    exceed = np.repeat([True, False, False, False], 10)
+    errors = np.where(exceed, 2.0, 0.5)
+    cells = [c.strip() for c in rate_row("x", exceed, 40, errors, 4).strip(" |").split("|")]
+    assert len(cells) == len(RATE_HEADER.strip(" |").split("|")) == 5
+    low, high = wilson(10, 40)
+    c_low, c_high = clustered_interval(exceed, 4)
+    assert cells[:3] == ["x", "40", f"10 (25.0 %) [{100 * low:.1f}, {100 * high:.1f}]"]
+    assert cells[3] == f"[{100 * c_low:.1f}, {100 * c_high:.1f}]" == "[0.0, 100.0]"
+    assert cells[4] == "0.500"
+    assert rate_row("x", exceed, 40, errors, 1).split("|")[4].strip() == "-"
