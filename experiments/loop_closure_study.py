@@ -167,8 +167,8 @@ def main(argv=None):
                                              else np.int64 if name in ("kind", "log")
                                              else bool)
                   for name, values in joins.items()})
-    write_outputs("loop_closure_study.py", argv, [" ".join(notes)] + tables(table, forests_of(args)), table,
-                  args.out)
+    write_outputs("loop_closure_study.py", argv,
+                  [" ".join(notes)] + tables(table, forests_of(args)), table, args.out)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Test configuration: float64 available, silent broadcasting turned into errors, and the
 persistent compilation cache kept out of the test process, XLA's backend optimisation turned
-down (compiling is most of the default tier's time) except for tests marked ``optimized``.
+down (compiling is most of the default tier's time; ``JAXSLAM_TEST_OPTIMIZED=1`` keeps it).
 
 Subprocess tests (the ``jaxslam`` command) share a cache of this session's own, never the
 user's. In this process a test that calls ``cli.main`` turns the persistent cache on
@@ -21,31 +21,26 @@ os.environ.setdefault("JAXSLAM_CACHE_DIR", tempfile.mkdtemp(prefix="jaxslam-test
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 # Most of the default tier's time is XLA compiling small programs that then run for
-# milliseconds, so its backend optimisation is turned down (XLA's HLO passes still run, and
-# floating-point semantics do not change: no fast-math either way). JAXSLAM_TEST_OPTIMIZED=1
-# tests the fully optimised programs; the benchmarks and the ``jaxslam`` subprocesses that
-# tests start always run them.
-# A test marked ``optimized`` pins one chaotic run's outcome or XLA's rounding of the
-# optimised program, which the lower optimisation level changes (seen: one chaotic run
-# ending 0.48 m off instead of 3.10 m): it runs fully optimised.
+# milliseconds, so XLA's backend (LLVM) optimisation is turned down. There is no fast-math at
+# either level, but rounding can differ between the levels (instruction selection, fused
+# multiply-adds): a 12-step float32 final error moved by 3.4e-5 m (5.6e-6 m between two
+# optimised programs), and one chaotic run ended 0.48 m off instead of 3.10 m.
+# JAXSLAM_TEST_OPTIMIZED=1 tests the fully optimised programs; the benchmarks and the
+# ``jaxslam`` subprocesses that tests start always run them. The flag is not part of the key
+# of JAX's in-memory compilation caches, so it is set once, here, before anything compiles.
 OPTIMISATION_TURNED_DOWN = os.environ.get("JAXSLAM_TEST_OPTIMIZED", "") in ("", "0")
 jax.config.update("jax_disable_most_optimizations", OPTIMISATION_TURNED_DOWN)
 
 
-@pytest.fixture(autouse=True)
-def _full_optimisation_where_marked(request):
-    if not (OPTIMISATION_TURNED_DOWN and request.node.get_closest_marker("optimized")):
-        yield
-        return
-    # The flag is not part of JAX's compilation cache key: programs compiled by earlier tests
-    # are dropped on the way in. The optimised ones the test compiles are kept for later tests
-    # (compiling them again would only cost time).
+def _drop_compiled_programs():
+    """Every compiled program of this process: JAX's in-memory caches and the study runner's
+    own (``jaxslam.studies._COMPILED``)."""
+    import sys
+
     jax.clear_caches()
-    jax.config.update("jax_disable_most_optimizations", False)
-    try:
-        yield
-    finally:
-        jax.config.update("jax_disable_most_optimizations", True)
+    studies = sys.modules.get("jaxslam.studies")
+    if studies is not None:
+        studies._COMPILED.clear()
 
 
 @pytest.fixture(scope="session")
@@ -97,10 +92,6 @@ def _free_compiled_programs_when_mappings_run_high():
     if _num_memory_mappings() < MAPPINGS_BEFORE_CLEARING:
         return
     import gc
-    import sys
 
-    jax.clear_caches()
-    studies = sys.modules.get("jaxslam.studies")
-    if studies is not None:
-        studies._COMPILED.clear()
+    _drop_compiled_programs()
     gc.collect()
