@@ -40,7 +40,7 @@ from jaxslam.datasets.odometry import odometry_path
 from jaxslam.filter import estimate, run_filter
 from jaxslam.motion import burst_variance_factor
 from jaxslam.pipeline import offline_path
-from jaxslam.self_calibration import (calibrate_params, defensive_bursts, em_typical_std,
+from jaxslam.self_calibration import (calibrate_params, em_typical_std,
                                       group_scales, starting_params)
 from jaxslam.types import FilterConfig, default_params
 from sims.forest import random_forest
@@ -138,23 +138,20 @@ class Recovery(NamedTuple):
     total_inside: np.ndarray
 
 
-def burst_rms_factor(values: dict, no_bursts: tuple[float, float]) -> float:
-    """sqrt(1 - eps + eps kappa^2) of the fitted bursts in ``values`` (``CalibrationInfo.
-    values``: ``motion_outlier_probability`` eps, ``motion_outlier_scale`` kappa), 1 when
-    none were fitted (absent, or equal to ``no_bursts``, the (eps, kappa) kept without)."""
-    eps = values.get("motion_outlier_probability")
-    kappa = values.get("motion_outlier_scale")
-    if eps is None or kappa is None or np.allclose((eps, kappa), no_bursts, rtol=1e-6):
+def burst_rms_factor(info) -> float:
+    """sqrt(1 - eps + eps kappa^2) of the bursts the calibration fitted
+    (``CalibrationInfo.bursts_fitted``; eps ``motion_outlier_probability``, kappa
+    ``motion_outlier_scale`` from ``CalibrationInfo.values``), 1 when it fitted none."""
+    if not info.bursts_fitted:
         return 1.0
-    fitted = types.SimpleNamespace(motion_outlier_probability=eps, motion_outlier_scale=kappa)
+    fitted = types.SimpleNamespace(motion_outlier_probability=info.values[
+        "motion_outlier_probability"], motion_outlier_scale=info.values["motion_outlier_scale"])
     return float(np.sqrt(burst_variance_factor(fitted)))
 
 
-def recovery(truth_params, info, odometry, observations,
-             no_bursts: tuple[float, float]) -> Recovery:
+def recovery(truth_params, info, odometry, observations) -> Recovery:
     """``Recovery`` of one calibration. odometry (T, 3): the log's moves (rot1, trans, rot2);
-    observations: z (T, K, 2), valid (T, K) (non-finite rows are not counted); no_bursts:
-    ``defensive_bursts(config)`` of the calibration (``burst_rms_factor``).
+    observations: z (T, K, 2), valid (T, K) (non-finite rows are not counted).
 
     The ratio is EM's own estimate (``self_calibration.em_typical_std``: the likelihood
     search's scales divided out) over the truth's."""
@@ -165,7 +162,7 @@ def recovery(truth_params, info, odometry, observations,
     scales = group_scales(info)
     ratio = em_typical_std(info) / true
     half = np.array([1.96 * info.relative_std.get(g, np.inf) for g in NOISE_GROUPS])
-    bursts = burst_rms_factor(info.values, no_bursts)
+    bursts = burst_rms_factor(info)
     total = ratio * np.array([bursts, bursts, 1.0, 1.0])
     return Recovery(ratio, half, np.abs(ratio - 1.0) <= half, scales != 1.0, total,
                     np.abs(total - 1.0) <= half)
@@ -286,8 +283,7 @@ def main(argv=None):
         cal_error, cal_map, _, _, cal_offline = score(
             config, key_filter, calibrated, controls, obs, truth, trees, args.offline)
         rows.append((dr_error, true_error, cal_error, true_map, cal_map, seen))
-        recovered.append(recovery(truth_params, info, controls, obs,
-                                  defensive_bursts(config)))
+        recovered.append(recovery(truth_params, info, controls, obs))
         if args.offline:
             offline.append([true_offline, cal_offline])
             print(f"   offline (smoothed, loops closed): true noise {offline[-1][0]:.3f} m, "

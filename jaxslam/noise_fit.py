@@ -213,9 +213,10 @@ def fit_bursts(white, iterations: int = 50, min_share: float = 0.01, min_ratio: 
 
 def motion_noise_update(res: Residuals, scales: smoothing.NoiseScales,
                         no_bursts: tuple[float, float]):
-    """(coefficients (3, 3) of rot1, trans, rot2, burst probability, burst scale), or None
-    when there are too few moves. Bursts (``fit_bursts``) or, without them, the tail factor
-    and ``no_bursts`` (eps, kappa) (``self_calibration.defensive_bursts``)."""
+    """(coefficients (3, 3) of rot1, trans, rot2, burst probability, burst scale, whether
+    the bursts were fitted), or None when there are too few moves. Bursts (``fit_bursts``)
+    or, without them, the tail factor and ``no_bursts`` (eps, kappa)
+    (``self_calibration.defensive_bursts``)."""
     moving = np.all(np.isfinite(res.true_moves), axis=1)
     if int(moving.sum()) < MIN_MOVES:
         return None
@@ -251,7 +252,7 @@ def motion_noise_update(res: Residuals, scales: smoothing.NoiseScales,
                 rows[2] * np.sqrt(heading_tail)]
     # A positive constant keeps every move's covariance invertible (smoothing, proposals).
     rows = np.stack([np.concatenate([r[:2], [max(r[2], STD_FLOOR)]]) for r in rows])
-    return rows, eps, kappa
+    return rows, eps, kappa, bursts is not None
 
 
 def observation_noise_update(res: Residuals, scales: smoothing.NoiseScales, used: np.ndarray):

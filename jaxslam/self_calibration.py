@@ -127,6 +127,10 @@ class CalibrationInfo(NamedTuple):
         its map was full (summed over particles and steps). When EM does not converge, the
         settings returned are those of the best run after the first (``_best_run``), chosen
         among the runs that dropped none when any did (and scored a finite value).
+      bursts_fitted: whether the motion fit behind the returned settings found bursts
+        (``motion_outlier_probability`` and ``motion_outlier_scale`` fitted); False when it
+        kept the defensive ones (``defensive_bursts``), None when no motion fit lies behind
+        them.
     """
 
     iterations: int
@@ -141,6 +145,7 @@ class CalibrationInfo(NamedTuple):
     warnings: tuple
     noise_scales: ScaleSearch | None = None
     dropped_births: np.ndarray | None = None
+    bursts_fitted: bool | None = None
 
 
 def starting_params(config: FilterConfig | None = None, dtype=jnp.float32, **overrides) -> Params:
@@ -273,6 +278,7 @@ class _MStep(NamedTuple):
     observation_fitted: bool
     used: int  # observations of landmarks seen ``MIN_SIGHTINGS`` times or more
     relative_std: dict  # group -> relative standard error of its fitted std
+    bursts_fitted: bool  # the motion fit found bursts (else it kept the defensive ones)
 
 
 def _merged(smoothed: smoothing.Smoothed, smooth) -> smoothing.Smoothed:
@@ -320,7 +326,7 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
     update = {}
     motion = motion_noise_update(res, smoothed.noise_scales, defensive_bursts(config))
     if motion is not None:
-        (rot1, trans, rot2), eps, kappa = motion
+        (rot1, trans, rot2), eps, kappa, _ = motion
         update.update(rot1_noise=rot1, trans_noise=trans, rot2_noise=rot2,
                       motion_outlier_probability=eps, motion_outlier_scale=kappa)
     obs = observation_noise_update(res, smoothed.noise_scales, used)
@@ -337,23 +343,26 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
         update["airlock_sigmas"] = float(np.sqrt(update["association_gate"]))
     return _MStep(update, float(smoothed.cost[-1]) / max(rows, 1), motion is not None,
                   obs is not None, int(used.sum()),
-                  group_relative_errors(res, used, motion is not None, obs is not None))
+                  group_relative_errors(res, used, motion is not None, obs is not None),
+                  motion is not None and motion[3])
 
 
-def _stated_errors(m_steps: list, source, steps: int) -> tuple[dict, dict]:
-    """(relative_std, samples) of ``CalibrationInfo``: each group as its latest fit among
-    the M-steps up to ``source`` (the one behind the returned settings) stated it; ``steps``
-    moves for the motion groups. Nothing when ``source`` is none of them (the starting
-    settings were returned: no fit lies behind them)."""
+def _stated_errors(m_steps: list, source, steps: int) -> tuple[dict, dict, bool | None]:
+    """(relative_std, samples, bursts_fitted) of ``CalibrationInfo``: each group as its
+    latest fit among the M-steps up to ``source`` (the one behind the returned settings)
+    stated it; ``steps`` moves for the motion groups; whether that latest motion fit found
+    bursts (None without a motion fit). Nothing when ``source`` is none of them (the
+    starting settings were returned: no fit lies behind them)."""
     behind = next((i + 1 for i, step in enumerate(m_steps) if step is source), 0)
-    relative_std, samples = {}, {}
+    relative_std, samples, bursts_fitted = {}, {}, None
     for step in m_steps[:behind]:
         relative_std.update(step.relative_std)
         if step.motion_fitted:
             samples["heading"] = samples["translation"] = steps
+            bursts_fitted = step.bursts_fitted
         if step.observation_fitted:
             samples["range"] = samples["bearing"] = step.used
-    return relative_std, samples
+    return relative_std, samples, bursts_fitted
 
 
 def _best_run(objective, dropped) -> int:
@@ -559,8 +568,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                f"(the last moved a noise std by more than {tol:.0%})") + chosen
     if warnings:
         verdict += "; partly calibrated (see warnings)"
-    relative_std, samples = _stated_errors(m_steps, source, steps)
+    relative_std, samples, bursts_fitted = _stated_errors(m_steps, source, steps)
     return params, CalibrationInfo(done, np.asarray(objective), np.asarray(costs),
                                    np.asarray(typical), values, relative_std, samples,
                                    converged, verdict, tuple(warnings), found,
-                                   np.asarray(dropped, np.int64))
+                                   np.asarray(dropped, np.int64), bursts_fitted)

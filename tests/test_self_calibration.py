@@ -68,6 +68,12 @@ def test_recovers_the_noise_groups_within_stated_intervals():
     np.testing.assert_array_equal(info.dropped_births, np.zeros(info.iterations, np.int64))
     assert info.typical_std.shape == (info.iterations + 1, 4)
     assert set(info.relative_std) == {"heading", "translation", "range", "bearing"}
+    # Whether the motion fit behind the settings found bursts is recorded; when it did not,
+    # the returned bursts are the defensive ones it keeps.
+    assert info.bursts_fitted in (True, False)
+    bursts = (info.values["motion_outlier_probability"], info.values["motion_outlier_scale"])
+    if not info.bursts_fitted:
+        np.testing.assert_allclose(bursts, sc.defensive_bursts(CONFIG), rtol=1e-6)
     # The stated intervals are EM's: on this known-association log the likelihood search
     # must keep EM's noise (x1) for them to apply to the returned settings.
     assert info.noise_scales.motion_scale == info.noise_scales.observation_scale == 1.0
@@ -125,6 +131,7 @@ def test_too_few_observations_keeps_the_given_params_and_says_so():
     assert info.iterations == 0 and not info.converged
     assert "too few observations" in info.verdict
     assert any("valid observations" in w for w in info.warnings)
+    assert info.bursts_fitted is None  # no motion fit behind the settings
 
 
 def test_sparse_landmarks_keep_the_sensor_noise_and_warn():

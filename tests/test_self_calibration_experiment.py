@@ -32,8 +32,9 @@ def test_recovery_hand_example():
     factor = np.array([1.0, 1.5, 0.9, 1.02])
     info = types.SimpleNamespace(
         typical_std=np.stack([true * 3.0, true * factor]), noise_scales=None, values={},
+        bursts_fitted=None,
         relative_std={"heading": 0.01, "translation": 0.1, "range": 0.05, "bearing": 0.001})
-    found = recovery(truth, info, ODOMETRY, OBS, (0.05, 8.0))
+    found = recovery(truth, info, ODOMETRY, OBS)
     np.testing.assert_allclose(found.ratio, factor, rtol=1e-12)
     np.testing.assert_array_equal(found.total_ratio, found.ratio)  # no bursts fitted
     np.testing.assert_allclose(found.half_width, 1.96 * np.array([0.01, 0.1, 0.05, 0.001]),
@@ -41,7 +42,7 @@ def test_recovery_hand_example():
     np.testing.assert_array_equal(found.inside, [True, False, False, False])
     assert not found.scaled.any()
     del info.relative_std["bearing"]
-    found = recovery(truth, info, ODOMETRY, OBS, (0.05, 8.0))
+    found = recovery(truth, info, ODOMETRY, OBS)
     assert np.isinf(found.half_width[3]) and found.inside[3]
 
 
@@ -55,14 +56,15 @@ def test_recovery_divides_out_the_search_scales():
     info = types.SimpleNamespace(
         typical_std=np.stack([_true_typical(truth), returned]),
         noise_scales=types.SimpleNamespace(motion_scale=2.0, observation_scale=4.0), values={},
+        bursts_fitted=False,
         relative_std={"heading": 0.01, "translation": 0.01, "range": 0.01, "bearing": 0.01})
-    found = recovery(truth, info, ODOMETRY, OBS, (0.05, 8.0))
+    found = recovery(truth, info, ODOMETRY, OBS)
     np.testing.assert_allclose(found.ratio, np.ones(4), rtol=1e-6)  # float32 Params
     assert found.inside.all() and found.scaled.all()
     info.noise_scales = types.SimpleNamespace(motion_scale=2.0, observation_scale=1.0)
     info.typical_std = np.stack([_true_typical(truth),
                                  _true_typical(scaled_noise(truth, 2.0, 1.0))])
-    found = recovery(truth, info, ODOMETRY, OBS, (0.05, 8.0))
+    found = recovery(truth, info, ODOMETRY, OBS)
     np.testing.assert_array_equal(found.scaled, [True, True, False, False])
 
 
@@ -94,23 +96,24 @@ def test_write_recovery_rows_match_the_header(tmp_path, monkeypatch):
 
 def test_fitted_bursts_count_in_the_total_ratio():
     """Fitted bursts eps 0.1, kappa 3: the mixture's rms is sqrt(0.9 + 0.9) = 1.342 times the
-    core, so a core ratio of 0.75 is a total of 1.006 (inside +-0.02); the defaults kept
-    without bursts (here 0.05, 8) count as none; the sensor groups never change."""
+    core, so a core ratio of 0.75 is a total of 1.006 (inside +-0.02); the defensive bursts
+    kept when none were fitted count as none, whatever their values (``bursts_fitted``
+    False), as does no motion fit (None); the sensor groups never change."""
     from experiments.self_calibration import burst_rms_factor
 
-    assert burst_rms_factor({"motion_outlier_probability": 0.1, "motion_outlier_scale": 3.0},
-                            (0.05, 8.0)) == np.sqrt(1.8)
-    assert burst_rms_factor({"motion_outlier_probability": 0.05, "motion_outlier_scale": 8.0},
-                            (0.05, 8.0)) == 1.0
-    assert burst_rms_factor({}, (0.05, 8.0)) == 1.0
+    bursts = {"motion_outlier_probability": 0.1, "motion_outlier_scale": 3.0}
+    fitted = types.SimpleNamespace(values=bursts, bursts_fitted=True)
+    assert burst_rms_factor(fitted) == np.sqrt(1.8)
+    assert burst_rms_factor(types.SimpleNamespace(values=bursts, bursts_fitted=False)) == 1.0
+    assert burst_rms_factor(types.SimpleNamespace(values={}, bursts_fitted=None)) == 1.0
     truth = true_params(2.0, 2.0)
     true = _true_typical(truth)
     info = types.SimpleNamespace(
         typical_std=np.stack([true, true * np.array([0.75, 0.75, 0.75, 1.0])]),
         noise_scales=None,
-        values={"motion_outlier_probability": 0.1, "motion_outlier_scale": 3.0},
+        values=bursts, bursts_fitted=True,
         relative_std={"heading": 0.01, "translation": 0.01, "range": 0.01, "bearing": 0.01})
-    found = recovery(truth, info, ODOMETRY, OBS, (0.05, 8.0))
+    found = recovery(truth, info, ODOMETRY, OBS)
     np.testing.assert_allclose(found.total_ratio, [0.75 * np.sqrt(1.8)] * 2 + [0.75, 1.0],
                                rtol=1e-12)
     np.testing.assert_array_equal(found.inside, [False, False, False, True])

@@ -131,17 +131,23 @@ def test_group_errors_whiten_each_group_as_the_fit_does():
 
 def test_stated_errors_come_from_the_m_steps_behind_the_returned_settings():
     """Three M-steps; the settings returned are the second's: its motion error (0.2) and the
-    first's sensor errors (the second fitted no sensor) are stated, not the third's."""
+    first's sensor errors (the second fitted no sensor) are stated, not the third's; so is
+    the second's burst verdict (none fitted), not the first's or the third's."""
     from jaxslam.self_calibration import _MStep, _stated_errors
 
     first = _MStep({}, 1.0, True, True, 400, {"heading": 0.1, "translation": 0.1,
-                                              "range": 0.01, "bearing": 0.01})
-    second = _MStep({}, 1.0, True, False, 0, {"heading": 0.2, "translation": 0.2})
+                                              "range": 0.01, "bearing": 0.01}, True)
+    second = _MStep({}, 1.0, True, False, 0, {"heading": 0.2, "translation": 0.2}, False)
     third = _MStep({}, 1.0, True, True, 500, {"heading": 0.3, "translation": 0.3,
-                                              "range": 0.03, "bearing": 0.03})
-    errors, samples = _stated_errors([first, second, third], second, 250)
+                                              "range": 0.03, "bearing": 0.03}, True)
+    errors, samples, bursts = _stated_errors([first, second, third], second, 250)
     assert errors == {"heading": 0.2, "translation": 0.2, "range": 0.01, "bearing": 0.01}
     assert samples == {"heading": 250, "translation": 250, "range": 400, "bearing": 400}
+    assert bursts is False
     assert _stated_errors([first, second, third], third, 250)[0]["range"] == 0.03
+    assert _stated_errors([first, second, third], third, 250)[2] is True
+    # A sensor-only M-step says nothing of bursts: the latest motion fit's verdict stands.
+    sensor_only = _MStep({}, 1.0, False, True, 300, {"range": 0.02, "bearing": 0.02}, False)
+    assert _stated_errors([first, sensor_only], sensor_only, 250)[2] is True
     # The starting settings returned (no M-step behind them): nothing is stated.
-    assert _stated_errors([first, second, third], None, 250) == ({}, {})
+    assert _stated_errors([first, second, third], None, 250) == ({}, {}, None)
