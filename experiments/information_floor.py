@@ -175,13 +175,13 @@ RATE_HEADER = ("| estimate | logs | final error > 1 m [Wilson 95 %] | forests' 9
                "| median final error [m] |")
 
 
-def rate_row(label: str, exceed, total: int, errors, forests: int) -> str:
+def rate_row(label: str, exceed, errors, forests: int) -> str:
     """'| label | n | k (p %) [Wilson 95 %] | [forest interval] | median |' of a > 1 m count
-    ``exceed`` (n,) over n logs that come in ``forests`` equal blocks of one forest each
+    ``exceed`` (n,) bool over n logs that come in ``forests`` equal blocks of one forest each
     (``make_logs``' order). The Wilson interval treats the logs as independent; the forests'
     interval (``proposal_study.clustered_interval``) treats the forests as the sampled units,
     the honest one when the rate depends on the forest. '-' with fewer than 2 forests."""
-    k = int(np.sum(exceed))
+    total, k = np.size(exceed), int(np.sum(exceed))
     low, high = wilson(k, total)
     clustered = "-"
     if forests >= 2:
@@ -227,7 +227,7 @@ def floor_tables(floor: dict, seconds: float, iterations: int, forests: int) -> 
     first-step error."""
     runs = len(floor["error"])
     table = (RATE_HEADER + "\n|---|---|---|---|---|\n" + "\n".join(
-                 rate_row(label, floor[name] > 1, runs, floor[name], forests) for label, name in (
+                 rate_row(label, floor[name] > 1, floor[name], forests) for label, name in (
                      ("MAP, true association (lower cost of two starts)", "error"),
                      ("MAP from dead reckoning alone", "from_dead_reckoning"),
                      ("MAP from the truth alone", "from_truth"),
@@ -321,7 +321,7 @@ def main(argv=None):
         error, compile_s, run_s = filter_errors(particles, params, key_filters,
                                                 controls, obs, truth, args.runs, args.chunk)
         out[f"filter_P{particles}"] = columns[f"filter P = {particles}"] = error
-        filter_rows.append(rate_row(f"default filter, P = {particles}", error > 1, first, error,
+        filter_rows.append(rate_row(f"default filter, P = {particles}", error > 1, error,
                                     used_forests)
                            + f" {first * controls.shape[1] / run_s:.3g} | {compile_s:.0f} |")
         print(filter_rows[-1], flush=True)

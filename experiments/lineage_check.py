@@ -422,7 +422,7 @@ def tables(table: dict, forests: int) -> list[str]:
                "re-sightings after > 40 steps merged (loop closure)",
                "oracle_all": "ORACLE: MAP, own association with every split merged"}
     out = [RATE_HEADER + "\n|---|---|---|---|---|\n" + "\n".join(
-        rate_row(label, table[name] > 1, runs, table[name], forests)
+        rate_row(label, table[name] > 1, table[name], forests)
         for name, label in {**errors, **oracles}.items())]
     ratio = table["identities"] / np.maximum(table["trees"], 1)
     out.append(

@@ -110,7 +110,7 @@ def join_table(table: dict) -> str:
 def tables(table: dict, forests: int) -> list[str]:
     """Markdown sections of the per-log arrays ``table`` of logs over ``forests`` forests."""
     runs = table["online"].size
-    rows = [rate_row(label, table[name] > 1, runs, table[name], forests) for name, label in (
+    rows = [rate_row(label, table[name] > 1, table[name], forests) for name, label in (
         ("online", "online (weighted mean)"),
         ("own", "MAP on the best history's own association"),
         ("closed", "MAP after close_loops (registration + cost test + tested merges)"))]

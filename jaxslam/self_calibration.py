@@ -325,8 +325,9 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
     used = res.sightings[res.obs_landmark] >= MIN_SIGHTINGS
     update = {}
     motion = motion_noise_update(res, smoothed.noise_scales, defensive_bursts(config))
+    bursts_fitted = False
     if motion is not None:
-        (rot1, trans, rot2), eps, kappa, _ = motion
+        (rot1, trans, rot2), eps, kappa, bursts_fitted = motion
         update.update(rot1_noise=rot1, trans_noise=trans, rot2_noise=rot2,
                       motion_outlier_probability=eps, motion_outlier_scale=kappa)
     obs = observation_noise_update(res, smoothed.noise_scales, used)
@@ -344,7 +345,7 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
     return _MStep(update, float(smoothed.cost[-1]) / max(rows, 1), motion is not None,
                   obs is not None, int(used.sum()),
                   group_relative_errors(res, used, motion is not None, obs is not None),
-                  motion is not None and motion[3])
+                  bursts_fitted)
 
 
 def _stated_errors(m_steps: list, source, steps: int) -> tuple[dict, dict, bool | None]:

@@ -32,17 +32,6 @@ OPTIMISATION_TURNED_DOWN = os.environ.get("JAXSLAM_TEST_OPTIMIZED", "") in ("", 
 jax.config.update("jax_disable_most_optimizations", OPTIMISATION_TURNED_DOWN)
 
 
-def _drop_compiled_programs():
-    """Every compiled program of this process: JAX's in-memory caches and the study runner's
-    own (``jaxslam.studies._COMPILED``)."""
-    import sys
-
-    jax.clear_caches()
-    studies = sys.modules.get("jaxslam.studies")
-    if studies is not None:
-        studies._COMPILED.clear()
-
-
 @pytest.fixture(scope="session")
 def load_benchmark():
     """``load(name)`` imports ``benchmarks/<name>.py`` by its path (the folder is scripts, not
@@ -92,6 +81,10 @@ def _free_compiled_programs_when_mappings_run_high():
     if _num_memory_mappings() < MAPPINGS_BEFORE_CLEARING:
         return
     import gc
+    import sys
 
-    _drop_compiled_programs()
+    jax.clear_caches()
+    studies = sys.modules.get("jaxslam.studies")
+    if studies is not None:
+        studies._COMPILED.clear()
     gc.collect()

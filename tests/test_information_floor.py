@@ -149,11 +149,11 @@ def test_rate_row_puts_the_forests_interval_beside_wilson():
 
     exceed = np.repeat([True, False, False, False], 10)
     errors = np.where(exceed, 2.0, 0.5)
-    cells = [c.strip() for c in rate_row("x", exceed, 40, errors, 4).strip(" |").split("|")]
+    cells = [c.strip() for c in rate_row("x", exceed, errors, 4).strip(" |").split("|")]
     assert len(cells) == len(RATE_HEADER.strip(" |").split("|")) == 5
     low, high = wilson(10, 40)
     c_low, c_high = clustered_interval(exceed, 4)
     assert cells[:3] == ["x", "40", f"10 (25.0 %) [{100 * low:.1f}, {100 * high:.1f}]"]
     assert cells[3] == f"[{100 * c_low:.1f}, {100 * c_high:.1f}]" == "[0.0, 100.0]"
     assert cells[4] == "0.500"
-    assert rate_row("x", exceed, 40, errors, 1).split("|")[4].strip() == "-"
+    assert rate_row("x", exceed, errors, 1).split("|")[4].strip() == "-"

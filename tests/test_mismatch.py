@@ -78,8 +78,9 @@ def test_filter_loop_matches_scan_filter():
     weighted mean against the truth. Both run the same float32 step, one vmapped in a jit and
     one not, so only XLA's code generation may round differently: 5.6e-6 m at coordinates of
     ~49 m with full optimisation, 3.4e-5 m (about 9 float32 ulps there) at the test tier's
-    lower backend optimisation (tests/conftest.py); atol 1e-4 m. (Should rounding ever flip a resampling draw the runs
-    would part by centimetres and this would fail: re-check the keys before loosening it.)"""
+    lower backend optimisation (tests/conftest.py); atol 1e-4 m. (Should rounding ever flip
+    a resampling draw the runs would part by centimetres and this would fail: re-check the
+    keys before loosening it.)"""
     key = jax.random.PRNGKey(3)
     controls, obs, truth, _ = make_logs(key, true_params(2.0, 1.0), 0.3, 2, 1)
     controls, truth = controls[:, :12], truth[:, :13]
