@@ -3,20 +3,25 @@ persistent compilation cache kept out of the test process, XLA's backend optimis
 down (compiling is most of the default tier's time; ``JAXSLAM_TEST_OPTIMIZED=1`` keeps it).
 
 Subprocess tests (the ``jaxslam`` command) share a cache of this session's own, never the
-user's. In this process a test that calls ``cli.main`` turns the persistent cache on
-(``cli.enable_compilation_cache``); it is turned off again after that test, because writing
-some of the later tests' executables to it aborted the process (jax 0.10.2 on the CPU,
-``compilation_cache.put_executable_and_time``, seen twice in full runs).
+user's, removed when the session ends. In this process a test that calls ``cli.main`` turns
+the persistent cache on (``cli.enable_compilation_cache``); it is turned off again after that
+test, because writing some of the later tests' executables to it aborted the process
+(jax 0.10.2 on the CPU, ``compilation_cache.put_executable_and_time``, seen twice in full
+runs).
 """
+import atexit
 import importlib.util
 import os
 import pathlib
+import shutil
 import tempfile
 
 import jax
 import pytest
 
-os.environ.setdefault("JAXSLAM_CACHE_DIR", tempfile.mkdtemp(prefix="jaxslam-test-cache-"))
+if "JAXSLAM_CACHE_DIR" not in os.environ:  # pytest-xdist workers inherit the controller's
+    os.environ["JAXSLAM_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxslam-test-cache-")
+    atexit.register(shutil.rmtree, os.environ["JAXSLAM_CACHE_DIR"], ignore_errors=True)
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
