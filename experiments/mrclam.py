@@ -10,19 +10,31 @@ scores (ATE of the online mean path and of the smoothed one, against dead reckon
 
 With ``--close-loops`` the smoothed path is ``loop_closure.close_loops``' (loops the filter
 missed closed by registration, each tested by the smoother's cost rise).
+
+Diagnostic, not the dataset's task: ``--barcodes both`` gives the filter the barcodes
+(``association="known"``) in the calibration and in the run; ``--barcodes calibration`` only
+in the calibration, the run then associates by itself with those settings. The two bound what
+a better association (``both``) and better-calibrated noise (``calibration``) could give.
+
+    python experiments/mrclam.py --barcodes both
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import pathlib
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxslam import metrics, pipeline
+from jaxslam.datasets.mrclam import read_mrclam
+from jaxslam.datasets.mrclam_convert import DEFAULT_MAX_OBS, mrclam_log, mrclam_steps
 from jaxslam.datasets.odometry import odometry_path
-from jaxslam.datasets.mrclam import load_mrclam
+from jaxslam.filter import run_filter
+from jaxslam.self_calibration import calibrate_params
 from jaxslam.types import FilterConfig
 
 DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "mrclam1"
@@ -36,15 +48,33 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-calibrate", action="store_true")
     parser.add_argument("--close-loops", action="store_true")
+    parser.add_argument("--barcodes", choices=("none", "calibration", "both"), default="none",
+                        help="diagnostic: association known from the barcodes in the "
+                             "calibration, or in the calibration and the run")
     args = parser.parse_args(argv)
+    if args.barcodes != "none" and (args.no_calibrate or args.close_loops):
+        parser.error("--barcodes calibrates and filters only (no --no-calibrate, "
+                     "--close-loops)")
     config = FilterConfig(num_particles=args.particles, max_landmarks=64, max_obs=8)
     rows = []
     for robot in args.robots:
-        log = load_mrclam(args.data, robot)
+        raw = read_mrclam(args.data, robot)
+        steps = mrclam_steps(raw, DEFAULT_MAX_OBS)
+        log = mrclam_log(raw, steps)
         truth = np.asarray(log.truth_pose)
         dr = np.asarray(odometry_path(log.controls, log.initial_pose))[-len(truth):]
         dr_ate = float(metrics.ate_rmse(dr, truth))
         start = time.perf_counter()
+        if args.barcodes != "none":
+            ate, landmarks, verdict = with_barcodes(log, steps.obs_landmark, config,
+                                                    args.barcodes, args.seed)
+            rows.append((dr_ate, ate, np.nan, landmarks, np.nan))
+            print(f"robot {robot}: T={log.num_steps} | dead reckoning ATE {dr_ate:.3f} m | "
+                  f"barcodes in the {args.barcodes.replace('both', 'calibration and run')}: "
+                  f"filter ATE {ate:.3f} m (dead reckoning / filter {dr_ate / ate:.2f}) | "
+                  f"{landmarks} landmarks | {time.perf_counter() - start:.1f} s | {verdict}",
+                  flush=True)
+            continue
         run = pipeline.filter_log(log, config, None, jax.random.PRNGKey(args.seed),
                                   calibrate=not args.no_calibrate, smooth=True,
                                   close_loops=args.close_loops)
@@ -66,10 +96,29 @@ def main(argv=None):
         for line in run.warnings:
             print("   WARNING:", line)
     rows = np.asarray(rows)
+    smoothed = ("" if args.barcodes != "none"  # the barcode runs are not smoothed
+                else f", smoothed {np.median(rows[:, 2]):.3f} m")
     print(f"median: dead reckoning {np.median(rows[:, 0]):.3f} m, filter "
-          f"{np.median(rows[:, 1]):.3f} m, smoothed {np.median(rows[:, 2]):.3f} m; ratio dead "
-          f"reckoning / filter "
+          f"{np.median(rows[:, 1]):.3f} m{smoothed}; ratio dead reckoning / filter "
           f"{np.median(rows[:, 0] / rows[:, 1]):.2f}; landmarks {np.median(rows[:, 3]):.0f}")
+
+
+def with_barcodes(log, obs_landmark, config: FilterConfig, barcodes: str, seed: int):
+    """(filter ATE [m], final landmarks, calibration verdict) of one robot's log calibrated
+    with the association known from the barcodes (obs_landmark (T, K), -1 padding), and
+    filtered with it (``barcodes="both"``) or with the config's own association
+    (``"calibration"``). Vicon only scores."""
+    config, controls, obs, start = pipeline.log_inputs(log, config)
+    obs = obs._replace(landmark_id=jnp.asarray(
+        np.where(np.asarray(obs.valid), obs_landmark, -1), jnp.int32))
+    known = dataclasses.replace(config, association="known")
+    key = jax.random.PRNGKey(seed)
+    params, info = calibrate_params(known, key, controls, obs, start)
+    _, trace = run_filter(known if barcodes == "both" else config, key, params, controls, obs,
+                          jnp.asarray(start, jnp.float32))
+    ate = float(metrics.ate_rmse(np.asarray(trace.mean_pose, np.float64),
+                                 np.asarray(log.truth_pose)))
+    return ate, int(np.asarray(trace.num_landmarks)[-1]), info.verdict
 
 
 if __name__ == "__main__":
