@@ -3,26 +3,18 @@ import numpy as np
 import pytest
 
 from experiments.mrclam import main, with_barcodes
-from jaxslam.datasets.log_format import RobotLog
 from jaxslam.types import FilterConfig
+from test_pipeline import _log  # tests/ is on sys.path (no tests/__init__.py)
 
 
 def _log_and_ids(steps=30):
-    """A straight drive past five trees, exact odometry and observations, (T, K) tree ids."""
-    trees = np.array([[2.0, 2.0], [4.0, -2.0], [6.0, 2.0], [8.0, -2.0], [10.0, 2.0]])
-    truth = np.stack([0.4 * np.arange(1, steps + 1), np.zeros(steps), np.zeros(steps)], 1)
-    offset = trees[None] - truth[:, None, :2]
-    z = np.stack([np.hypot(offset[..., 0], offset[..., 1]),
-                  np.arctan2(offset[..., 1], offset[..., 0])], -1)
-    valid = z[..., 0] < 6.0
-    log = RobotLog(time=np.arange(steps, dtype=float), motion_model="odometry",
-                   controls=np.tile([0.0, 0.4, 0.0], (steps, 1)), obs_z=z, obs_valid=valid,
-                   truth_pose=truth, truth_landmarks=trees)
-    ids = np.where(valid, np.arange(5)[None], -1)
-    return log, ids
+    """test_pipeline's straight drive past five trees (exact odometry and observations) and
+    its (T, K) tree ids: observation k of every step is tree k."""
+    log = _log(steps)
+    return log, np.where(log.obs_valid, np.arange(5)[None], -1)
 
 
-@pytest.mark.slow  # two calibrations, ~40 s of compiling
+@pytest.mark.slow  # two calibrations, about 20 s on this 2-core CPU
 @pytest.mark.parametrize("barcodes", ["both", "calibration"])
 def test_with_barcodes_calibrates_and_filters_an_exact_log(barcodes):
     log, ids = _log_and_ids()
