@@ -29,8 +29,20 @@ s_m over ``motion_scales`` with s_o = 1, then s_o over ``observation_scales`` at
 s_m; not a joint maximum. Every candidate runs with one key (common random numbers: the
 candidates differ only in their settings, so the differences of their log likelihoods are
 less noisy than each one), each once (the second stage's s_o = 1 is the first stage's
-choice): at most len(motion_scales) + len(observation_scales) - 1 filter runs. Scales below 1 are not searched by
-default: EM's failure is the shrinking loop above.
+choice): at most len(motion_scales) + len(observation_scales) - 1 filter runs. Scales below 1
+are not searched by default: EM's failure is the shrinking loop above.
+
+Each stage walks its grid outward from 1 (upward through the larger scales, then downward
+through the smaller ones) and, with ``stop_at_first_drop``, stops a direction at the first
+fair candidate (below) that scores lower than the best fair one met so far on that walk; the
+candidates it did not run score NaN. For one Gaussian noise group whose std is multiplied by
+s, the expected log likelihood -n log s - Q / (2 s^2) (n residuals of summed squared whitened
+size Q at s = 1) has one maximum, at s^2 = Q / n, so a drop means the peak is passed. The
+particle filter's estimate is noisy and the walk assumes it keeps that shape; every stage
+of the runs recorded in docs/results.md (MRCLAM robots 1 and 2, Victoria Park keys 0 and 1)
+rose to one peak and fell after it. A stage whose runs all overflow runs every candidate, as
+no run is fair. This saves the runs past the peak: on MRCLAM's motion x2, observation x1, 3 of
+the 6 runs.
 
 The new-landmark credit is held fixed. The filter credits an observation that no landmark
 explains with the density of a match at the gate under the observation's own noise
@@ -85,7 +97,8 @@ class ScaleSearch(NamedTuple):
     marginal likelihoods. observation_scales / observation_objective: the same for the second
     stage (at the chosen s_m). motion_dropped / observation_dropped: (S_m,) / (S_o,) the
     births each candidate's run dropped for want of a free slot (summed over particles and
-    steps; ``best_scale``).
+    steps; ``best_scale``). A candidate the walk did not run (``walk_stage``) has objective
+    NaN and dropped -1.
     """
 
     motion_scale: float
@@ -173,13 +186,43 @@ def best_scale(scales, objective, dropped=None) -> float:
     return float(np.asarray(scales)[int(np.argmax(objective))])
 
 
+def walk_stage(scales, score, stop_at_first_drop: bool = True):
+    """One stage's (objective (S,), dropped (S,)) over ``scales`` (S,) (contains 1), with
+    ``score(scale) -> RunScore``: candidates run outward from 1, the larger scales upward and
+    then the smaller downward. With ``stop_at_first_drop`` a direction stops after a fair run
+    (dropped no birth, finite score) that scores below the best fair run met on that walk
+    (1 included); candidates not run get NaN and -1 (module docstring)."""
+    scales = np.asarray(scales, np.float64)
+    objective = np.full(scales.shape, np.nan)
+    dropped = np.full(scales.shape, -1, np.int64)
+
+    def run(index) -> float:  # the run's fair score, -inf when it is not fair
+        result = score(float(scales[index]))
+        objective[index], dropped[index] = result.log_likelihood, result.dropped_births
+        fair = result.dropped_births == 0 and np.isfinite(result.log_likelihood)
+        return float(result.log_likelihood) if fair else -np.inf
+
+    start = int(np.flatnonzero(scales == 1.0)[0])
+    at_one = run(start)
+    up = [i for i in np.argsort(scales, kind="stable") if scales[i] > 1.0]
+    down = [i for i in np.argsort(-scales, kind="stable") if scales[i] < 1.0]
+    for direction in (up, down):
+        best = at_one
+        for index in direction:
+            value = run(index)
+            if stop_at_first_drop and np.isfinite(value) and value < best:
+                break
+            best = max(best, value)
+    return objective, dropped
+
+
 def check_scales(name: str, scales) -> np.ndarray:
     """``scales`` as a float64 (S,) array; ValueError unless it is a non-empty 1-D sequence of
-    finite positive multipliers that contains 1 (EM's own result)."""
+    distinct finite positive multipliers that contains 1 (EM's own result)."""
     scales = np.asarray(scales, np.float64)
     if scales.ndim != 1 or scales.size == 0 or not np.all(np.isfinite(scales)) or np.any(
-            scales <= 0) or not np.any(scales == 1.0):
-        raise ValueError(f"{name} must be a non-empty 1-D sequence of finite positive "
+            scales <= 0) or not np.any(scales == 1.0) or np.unique(scales).size != scales.size:
+        raise ValueError(f"{name} must be a non-empty 1-D sequence of distinct finite positive "
                          f"multipliers that contains 1; got {scales.tolist()}")
     return scales
 
@@ -189,7 +232,8 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
                         motion_scales=DEFAULT_SCALES,
                         observation_scales=DEFAULT_SCALES,
                         known_objective: float | None = None,
-                        known_dropped: int | None = None) -> tuple[Params, ScaleSearch]:
+                        known_dropped: int | None = None,
+                        stop_at_first_drop: bool = True) -> tuple[Params, ScaleSearch]:
     """Multiply ``params``' motion and observation noise by the scales of highest filter log
     marginal likelihood (module docstring: coordinate ascent, motion first).
 
@@ -202,10 +246,13 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
       known_objective, known_dropped: ``run_score`` of ``params`` itself with ``key`` when the
         caller has it (EM's run of the settings it returns), so that candidate is not run
         again; both or neither.
+      stop_at_first_drop: walk each grid outward from 1 and stop a direction once a fair
+        candidate scores below the best met on it (module docstring); False runs every
+        candidate.
     Returns:
-      (scaled ``Params``, ``ScaleSearch``). A stage whose candidates all score a non-finite
-      value keeps 1, and so does a stage whose candidates all dropped births
-      (``best_scale``).
+      (scaled ``Params``, ``ScaleSearch``; a candidate not run has objective NaN and
+      dropped -1). A stage whose candidates all score a non-finite value keeps 1, and so does
+      a stage whose candidates all dropped births (``best_scale``).
     """
     motion_scales = check_scales("motion_scales", motion_scales)
     observation_scales = check_scales("observation_scales", observation_scales)
@@ -222,13 +269,11 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
                 observations, initial_pose)
         return scored[motion, observation]
 
-    motion = [score(float(m), 1.0) for m in motion_scales]
-    motion_objective = np.array([run.log_likelihood for run in motion])
-    motion_dropped = np.array([run.dropped_births for run in motion], np.int64)
+    motion_objective, motion_dropped = walk_stage(
+        motion_scales, lambda m: score(m, 1.0), stop_at_first_drop)
     motion_scale = best_scale(motion_scales, motion_objective, motion_dropped)
-    observation = [score(motion_scale, float(o)) for o in observation_scales]
-    observation_objective = np.array([run.log_likelihood for run in observation])
-    observation_dropped = np.array([run.dropped_births for run in observation], np.int64)
+    observation_objective, observation_dropped = walk_stage(
+        observation_scales, lambda o: score(motion_scale, o), stop_at_first_drop)
     observation_scale = best_scale(observation_scales, observation_objective,
                                    observation_dropped)
     return scaled_noise(params, motion_scale, observation_scale), ScaleSearch(

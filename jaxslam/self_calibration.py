@@ -424,7 +424,9 @@ def _scale_search(config, key, params, controls, observations, start, scales, la
             f"{np.round(found.motion_objective, 1).tolist()}, observation "
             f"{found.observation_scales.tolist()} -> "
             f"{np.round(found.observation_objective, 1).tolist()}")
-    if np.any(found.motion_dropped) or np.any(found.observation_dropped):
+    if np.any(found.motion_dropped < 0) or np.any(found.observation_dropped < 0):
+        line += " (nan where not run: the score had already fallen past its peak)"
+    if np.any(found.motion_dropped > 0) or np.any(found.observation_dropped > 0):
         line += (f" (births dropped, map full: motion {found.motion_dropped.tolist()}, "
                  f"observation {found.observation_dropped.tolist()}; only runs that dropped "
                  f"none compete, and a stage where every run dropped births keeps x1)")
@@ -489,8 +491,9 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         among the runs whose map never overflowed (a stage where every run overflowed keeps
         1; ``noise_scale.search_noise_scales``, EM's key; only the groups EM fitted): EM on
         a poor association shrinks the noise. ``converged`` and ``relative_std`` still describe
-        EM's own estimate. Costs 2 len(scales) - 1 more filter runs (one fewer when EM did
-        not converge: its best run is reused).
+        EM's own estimate. Costs at most 2 len(scales) - 1 more filter runs (one fewer when
+        EM did not converge: its best run is reused), fewer when a stage's score falls past
+        its peak (``noise_scale.walk_stage``).
       progress: optional callable(str) told of each iteration in one line.
     Returns:
       (params, info): the calibrated ``Params`` (dtype of ``params``) and ``CalibrationInfo``.

@@ -154,8 +154,8 @@ def test_search_widens_a_noise_that_is_too_narrow():
     # the stated interval. Not a near tie: 1x must score at least 10 log units (a factor
     # e^10 in likelihood) below the chosen scale in both stages.
     assert found.motion_scale >= 2.0 and found.observation_scale >= 2.0
-    assert np.max(found.motion_objective) - found.motion_objective[0] > 10.0
-    assert np.max(found.observation_objective) - found.observation_objective[0] > 10.0
+    assert np.nanmax(found.motion_objective) - found.motion_objective[0] > 10.0
+    assert np.nanmax(found.observation_objective) - found.observation_objective[0] > 10.0
     chex.assert_shape(found.motion_objective, (4,))
     np.testing.assert_allclose(scaled.range_noise,
                                found.observation_scale * np.asarray(narrow.range_noise),
@@ -214,6 +214,61 @@ def test_search_ranks_runs_that_dropped_births_last(monkeypatch):
     np.testing.assert_array_equal(found.observation_dropped, [1000, 1000, 0, 0])
 
 
+def _stub_scores(table):
+    """score(scale) -> RunScore from {scale: (log likelihood, dropped births)}, recording
+    the order of the calls."""
+    calls = []
+
+    def score(scale):
+        calls.append(scale)
+        return ns.RunScore(*table[scale])
+
+    return score, calls
+
+
+GRID = np.array([1.0, 2.0, 4.0, 8.0, 16.0])
+
+
+def test_walk_stops_a_direction_once_the_score_falls_past_its_peak():
+    score, calls = _stub_scores({1.0: (5.0, 0), 2.0: (9.0, 0), 4.0: (7.0, 0), 8.0: (8.0, 0),
+                                 16.0: (1.0, 0)})
+    objective, dropped = ns.walk_stage(GRID, score)
+    assert calls == [1.0, 2.0, 4.0]  # 4 scores below 2's peak: 8 and 16 are not run
+    np.testing.assert_array_equal(objective, [5.0, 9.0, 7.0, np.nan, np.nan])
+    np.testing.assert_array_equal(dropped, [0, 0, 0, -1, -1])
+    assert ns.best_scale(GRID, objective, dropped) == 2.0
+    # Without the stop every candidate runs (and the later, higher bump at 8 stays below 2).
+    score, calls = _stub_scores({1.0: (5.0, 0), 2.0: (9.0, 0), 4.0: (7.0, 0), 8.0: (8.0, 0),
+                                 16.0: (1.0, 0)})
+    objective, dropped = ns.walk_stage(GRID, score, stop_at_first_drop=False)
+    assert calls == [1.0, 2.0, 4.0, 8.0, 16.0] and not np.isnan(objective).any()
+
+
+def test_walk_does_not_stop_on_runs_that_are_not_fair():
+    """Runs that dropped births or scored a non-finite value never stop the walk (they cannot
+    be chosen); the first fair run sets the best, the next lower fair one stops it."""
+    score, calls = _stub_scores({1.0: (50.0, 7), 2.0: (np.nan, 0), 4.0: (40.0, 3),
+                                 8.0: (6.0, 0), 16.0: (5.0, 0)})
+    objective, dropped = ns.walk_stage(GRID, score)
+    assert calls == [1.0, 2.0, 4.0, 8.0, 16.0]
+    assert ns.best_scale(GRID, objective, dropped) == 8.0
+    score, calls = _stub_scores({scale: (10.0 - scale, 1) for scale in GRID})
+    ns.walk_stage(GRID, score)
+    assert calls == GRID.tolist()  # every run overflowed: all run, the stage keeps 1
+
+
+def test_walk_goes_up_from_one_then_down():
+    grid = np.array([2.0, 0.25, 1.0, 0.5, 4.0])  # any order; each direction walks outward
+    score, calls = _stub_scores({0.25: (0.0, 0), 0.5: (3.0, 0), 1.0: (4.0, 0), 2.0: (1.0, 0),
+                                 4.0: (9.0, 0)})
+    objective, dropped = ns.walk_stage(grid, score)
+    # Up: 2 falls below 1, so 4 (which would have won) is never run: the walk assumes one
+    # peak. Down: 0.5 falls below 1, so 0.25 is not run.
+    assert calls == [1.0, 2.0, 0.5]
+    np.testing.assert_array_equal(dropped, [0, -1, 0, 0, -1])
+    assert ns.best_scale(grid, objective, dropped) == 1.0
+
+
 def test_run_score_counts_the_births_a_full_map_dropped():
     """A map of 6 slots for a loop through 30 trees: births are dropped, and ``run_score``
     reports the trace's sums; with 48 slots none is dropped."""
@@ -231,7 +286,8 @@ def test_run_score_counts_the_births_a_full_map_dropped():
                         poses[0]).dropped_births == 0
 
 
-@pytest.mark.parametrize("bad", [[], [0.0, 1.0], [1.0, np.nan], [[1.0]], [2.0, 4.0]])
+@pytest.mark.parametrize("bad", [[], [0.0, 1.0], [1.0, np.nan], [[1.0]], [2.0, 4.0],
+                                 [1.0, 2.0, 1.0]])
 def test_bad_scales_are_refused_with_a_clear_error(bad):
     controls, obs, poses = _log()
     with pytest.raises(ValueError, match="motion_scales must be a non-empty 1-D .* contains 1"):
