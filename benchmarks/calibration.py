@@ -55,6 +55,7 @@ import time
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
@@ -130,6 +131,14 @@ def bench(name, config, controls, obs, start, stages: bool = False, params=None)
           f"{seconds:.2f} s, {info.iterations} iterations ({info.verdict}) | "
           f"{seconds / run:.1f}x one filter run, {seconds / info.iterations / run:.2f}x a run "
           f"per iteration")
+    print(f"    log marginal likelihood per iteration {np.round(info.objective, 1).tolist()}, "
+          f"births dropped {np.asarray(info.dropped_births).tolist()}")
+    if info.noise_scales is not None:
+        found = info.noise_scales
+        print(f"    scale search: motion {found.motion_scales.tolist()} -> "
+              f"{np.round(found.motion_objective, 1).tolist()}, observation "
+              f"{found.observation_scales.tolist()} -> "
+              f"{np.round(found.observation_objective, 1).tolist()} (nan: not run)")
     if stages:
         top = sum(v for label, v in totals.items() if not label.startswith(" "))
         for _, _, label in STAGES:
