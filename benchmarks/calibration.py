@@ -29,6 +29,9 @@ How to read a line:
   versions of the code (the filter is a chaotic function of its settings).
 * The machine is shared: a ratio moves by 20-30 % from one invocation to the next. Compare
   versions in one process, back to back, and repeat.
+* The next lines: EM's log marginal likelihood and dropped births for each iteration's filter
+  run, and the likelihood's scale search (``noise_scale``): each candidate's score and dropped
+  births (nan and -1 for a candidate its walk did not run).
 * ``--stages`` adds the seconds spent in each stage, summed over the iterations and as a
   multiple of the filter run: the filter runs, tracing the best particle's history, the
   smoother (its Levenberg-Marquardt solves and the variance components inside it), the
@@ -135,10 +138,14 @@ def bench(name, config, controls, obs, start, stages: bool = False, params=None)
           f"births dropped {np.asarray(info.dropped_births).tolist()}")
     if info.noise_scales is not None:
         found = info.noise_scales
+        not_run = np.any(found.motion_dropped < 0) or np.any(found.observation_dropped < 0)
         print(f"    scale search: motion {found.motion_scales.tolist()} -> "
-              f"{np.round(found.motion_objective, 1).tolist()}, observation "
+              f"{np.round(found.motion_objective, 1).tolist()} (births dropped "
+              f"{found.motion_dropped.tolist()}), observation "
               f"{found.observation_scales.tolist()} -> "
-              f"{np.round(found.observation_objective, 1).tolist()} (nan: not run)")
+              f"{np.round(found.observation_objective, 1).tolist()} (births dropped "
+              f"{found.observation_dropped.tolist()})"
+              + (" (nan and -1: not run)" if not_run else ""))
     if stages:
         top = sum(v for label, v in totals.items() if not label.startswith(" "))
         for _, _, label in STAGES:

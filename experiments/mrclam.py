@@ -66,14 +66,16 @@ def main(argv=None):
         dr_ate = float(metrics.ate_rmse(dr, truth))
         start = time.perf_counter()
         if args.barcodes != "none":
-            ate, landmarks, verdict = with_barcodes(log, steps.obs_landmark, config,
-                                                    args.barcodes, args.seed)
+            ate, landmarks, info = with_barcodes(log, steps.obs_landmark, config,
+                                                 args.barcodes, args.seed)
             rows.append((dr_ate, ate, np.nan, landmarks, np.nan))
             print(f"robot {robot}: T={log.num_steps} | dead reckoning ATE {dr_ate:.3f} m | "
                   f"barcodes in the {args.barcodes.replace('both', 'calibration and run')}: "
                   f"filter ATE {ate:.3f} m (dead reckoning / filter {dr_ate / ate:.2f}) | "
-                  f"{landmarks} landmarks | {time.perf_counter() - start:.1f} s | {verdict}",
-                  flush=True)
+                  f"{landmarks} landmarks | {time.perf_counter() - start:.1f} s | "
+                  f"{info.verdict}", flush=True)
+            for line in info.warnings:
+                print("   WARNING:", line)
             continue
         run = pipeline.filter_log(log, config, None, jax.random.PRNGKey(args.seed),
                                   calibrate=not args.no_calibrate, smooth=True,
@@ -104,7 +106,7 @@ def main(argv=None):
 
 
 def with_barcodes(log, obs_landmark, config: FilterConfig, barcodes: str, seed: int):
-    """(filter ATE [m], final landmarks, calibration verdict) of one robot's log calibrated
+    """(filter ATE [m], final landmarks, ``CalibrationInfo``) of one robot's log calibrated
     with the association known from the barcodes (obs_landmark (T, K), -1 padding), and
     filtered with it (``barcodes="both"``) or with the config's own association
     (``"calibration"``). Vicon only scores."""
@@ -118,7 +120,7 @@ def with_barcodes(log, obs_landmark, config: FilterConfig, barcodes: str, seed: 
                           jnp.asarray(start, jnp.float32))
     ate = float(metrics.ate_rmse(np.asarray(trace.mean_pose, np.float64),
                                  np.asarray(log.truth_pose)))
-    return ate, int(np.asarray(trace.num_landmarks)[-1]), info.verdict
+    return ate, int(np.asarray(trace.num_landmarks)[-1]), info
 
 
 if __name__ == "__main__":

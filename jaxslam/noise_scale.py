@@ -26,7 +26,7 @@ EM result:
 
 Coordinate ascent on a grid that contains 1 (EM's own result is always a candidate): first
 s_m over ``motion_scales`` with s_o = 1, then s_o over ``observation_scales`` at the chosen
-s_m; not a joint maximum. Every candidate runs with one key (common random numbers: the
+s_m; not a joint maximum. Every candidate that runs uses one key (common random numbers: the
 candidates differ only in their settings, so the differences of their log likelihoods are
 less noisy than each one), each once (the second stage's s_o = 1 is the first stage's
 choice): at most len(motion_scales) + len(observation_scales) - 1 filter runs. Scales below 1
@@ -34,15 +34,17 @@ are not searched by default: EM's failure is the shrinking loop above.
 
 Each stage walks its grid outward from 1 (upward through the larger scales, then downward
 through the smaller ones) and, with ``stop_at_first_drop``, stops a direction at the first
-fair candidate (below) that scores lower than the best fair one met so far on that walk; the
+fair candidate (dropped no birth, finite score; below) that scores lower than the best fair
+one met so far on that walk; the
 candidates it did not run score NaN. For one Gaussian noise group whose std is multiplied by
 s, the expected log likelihood -n log s - Q / (2 s^2) (n residuals of summed squared whitened
 size Q at s = 1) has one maximum, at s^2 = Q / n, so a drop means the peak is passed. The
-particle filter's estimate is noisy and the walk assumes it keeps that shape; every stage
-of the runs recorded in docs/results.md (MRCLAM robots 1 and 2, Victoria Park keys 0 and 1)
-rose to one peak and fell after it. A stage whose runs all overflow runs every candidate, as
-no run is fair. This saves the runs past the peak: on MRCLAM's motion x2, observation x1, 3 of
-the 6 runs.
+particle filter's estimate is noisy and the walk assumes it keeps that shape; in every stage
+recorded in docs/results.md (MRCLAM robots 1 and 2, Victoria Park keys 0 and 1) the fair
+runs' scores rose to one peak and fell after it (runs whose map overflowed need not: on
+Victoria Park they did not, and they never stop the walk). A stage whose runs all overflow
+runs every candidate, as no run is fair. This saves the runs past the peak: on MRCLAM's
+motion x2, observation x1, 3 of the 6 runs.
 
 The new-landmark credit is held fixed. The filter credits an observation that no landmark
 explains with the density of a match at the gate under the observation's own noise

@@ -58,8 +58,9 @@ for the motion groups that part is often the larger (docs/results.md, self_calib
 "Do the stated intervals hold the truth?").
 
 Cost: one filter run per iteration (plus the scale search's runs on the same compiled filter:
-7 with the default grid, 6 when EM did not converge), plus the smoother (0.15-0.35 of a run per iteration on
-MRCLAM robot 1 and on the simulated loop of ``benchmarks/calibration.py``), plus a few per cent
+at most 7 with the default grid, 6 when EM did not converge, fewer when a stage's score falls
+past its peak), plus the smoother (0.15-0.35 of a run per iteration on MRCLAM robot 1 and on
+the simulated loop of ``benchmarks/calibration.py``), plus a few per cent
 for the rest. Between the filter runs the library's models run on the host in float64 on
 shapes fixed for the log (``host.in_float64``), and the noise fits in
 NumPy/SciPy (``noise_fit``): the number of associated observations changes with every
@@ -428,8 +429,11 @@ def _scale_search(config, key, params, controls, observations, start, scales, la
         line += " (nan where not run: the score had already fallen past its peak)"
     if np.any(found.motion_dropped > 0) or np.any(found.observation_dropped > 0):
         line += (f" (births dropped, map full: motion {found.motion_dropped.tolist()}, "
-                 f"observation {found.observation_dropped.tolist()}; only runs that dropped "
-                 f"none compete, and a stage where every run dropped births keeps x1)")
+                 f"observation {found.observation_dropped.tolist()}"
+                 + ("; -1: not run" if np.any(found.motion_dropped < 0)
+                    or np.any(found.observation_dropped < 0) else "")
+                 + "; only runs that dropped none compete, and a stage where every run "
+                 "dropped births keeps x1)")
     if progress is not None:
         progress(f"calibration: {line}")
     if found.motion_scale == 1.0 and found.observation_scale == 1.0:

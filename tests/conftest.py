@@ -2,10 +2,11 @@
 persistent compilation cache kept out of the test process, XLA's backend optimisation turned
 down (compiling is most of the default tier's time; ``JAXSLAM_TEST_OPTIMIZED=1`` keeps it).
 
-Subprocess tests (the ``jaxslam`` command) share a cache of this session's own, never the
-user's, removed when the session ends. In this process a test that calls ``cli.main`` turns
-the persistent cache on (``cli.enable_compilation_cache``); it is turned off again after that
-test, because writing some of the later tests' executables to it aborted the process
+Subprocess tests (the ``jaxslam`` command) share a cache of this session's own, removed when
+the session ends (unless ``JAXSLAM_CACHE_DIR`` is set: then that folder is used and kept).
+In this process a test that calls ``cli.main`` turns the persistent cache on
+(``cli.enable_compilation_cache``); it is turned off again after that test, because writing
+some of the later tests' executables to it aborted the process
 (jax 0.10.2 on the CPU, ``compilation_cache.put_executable_and_time``, seen twice in full
 runs).
 """

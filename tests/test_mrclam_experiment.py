@@ -2,34 +2,51 @@
 import numpy as np
 import pytest
 
-from experiments.mrclam import main, with_barcodes
+import experiments.mrclam as experiment
 from jaxslam.types import FilterConfig
 from test_pipeline import _log  # tests/ is on sys.path (no tests/__init__.py)
 
 
-def _log_and_ids(steps=30):
-    """test_pipeline's straight drive past five trees (exact odometry and observations) and
-    its (T, K) tree ids: observation k of every step is tree k."""
-    log = _log(steps)
-    return log, np.where(log.obs_valid, np.arange(5)[None], -1)
-
-
 @pytest.mark.slow  # two calibrations, about 20 s on this 2-core CPU
-@pytest.mark.parametrize("barcodes", ["both", "calibration"])
-def test_with_barcodes_calibrates_and_filters_an_exact_log(barcodes):
-    log, ids = _log_and_ids()
+@pytest.mark.parametrize("barcodes, run_association", [("both", "known"),
+                                                       ("calibration", "stable")])
+def test_with_barcodes_calibrates_and_filters_an_exact_log(barcodes, run_association,
+                                                           monkeypatch):
+    """test_pipeline's straight drive past five trees, exact odometry and observations, with
+    observation k of every step tree k; the ids are given on padding rows too, and must
+    reach the filter as -1 there."""
+    log = _log(30)
+    ids = np.tile(np.arange(5), (30, 1))
+    seen = []
+
+    def recording(function):
+        def wrapped(config, *args, **kwargs):
+            obs = next(a for a in args if hasattr(a, "landmark_id"))  # the Observations
+            seen.append((function.__name__, config.association,
+                         np.asarray(obs.landmark_id).copy()))
+            return function(config, *args, **kwargs)
+        wrapped.__name__ = function.__name__
+        return wrapped
+
+    monkeypatch.setattr(experiment, "calibrate_params", recording(experiment.calibrate_params))
+    monkeypatch.setattr(experiment, "run_filter", recording(experiment.run_filter))
     config = FilterConfig(num_particles=8, max_landmarks=16)
-    ate, landmarks, verdict = with_barcodes(log, ids, config, barcodes, seed=0)
+    ate, landmarks, info = experiment.with_barcodes(log, ids, config, barcodes, seed=0)
+    assert [(name, association) for name, association, _ in seen] == [
+        ("calibrate_params", "known"), ("run_filter", run_association)]
+    masked = np.where(log.obs_valid, ids, -1)
+    for _, _, landmark_id in seen:
+        np.testing.assert_array_equal(landmark_id, masked)
     # Exact odometry and observations: whichever association runs, the path stays on the
     # truth (the observations' calibrated floor is centimetres) and the five trees seen are
-    # mapped once each (the barcodes give exactly five identities).
+    # mapped once each.
     assert ate < 0.1
     assert landmarks == 5
-    assert isinstance(verdict, str) and verdict
+    assert info.iterations >= 1 and info.verdict
 
 
 def test_barcodes_refuse_the_options_they_do_not_run(capsys):
     for extra in (["--no-calibrate"], ["--close-loops"]):
         with pytest.raises(SystemExit):
-            main(["--barcodes", "both", "--robots", "1", *extra])
+            experiment.main(["--barcodes", "both", "--robots", "1", *extra])
         assert "--barcodes calibrates and filters only" in capsys.readouterr().err

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import functools
+import types
 
 import chex
 import jax
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 
 from jaxslam import noise_scale as ns
+from jaxslam import self_calibration
 from jaxslam.filter import run_filter
 from jaxslam.types import FilterConfig, default_params
 from sims.forest import random_forest
@@ -267,6 +269,48 @@ def test_walk_goes_up_from_one_then_down():
     assert calls == [1.0, 2.0, 0.5]
     np.testing.assert_array_equal(dropped, [0, -1, 0, 0, -1])
     assert ns.best_scale(grid, objective, dropped) == 1.0
+
+
+def test_walk_sorts_the_grid_and_starts_each_direction_from_one():
+    """Upward the grid is walked in ascending order whatever its order; the downward walk
+    compares against x1's score, not the upward peak (0.5 scores below 2's peak but above
+    1's, so it goes on to 0.25)."""
+    grid = np.array([1.0, 8.0, 0.25, 2.0, 4.0, 0.5])
+    score, calls = _stub_scores({1.0: (5.0, 0), 2.0: (9.0, 0), 4.0: (7.0, 0), 8.0: (1.0, 0),
+                                 0.5: (6.0, 0), 0.25: (4.0, 0)})
+    objective, dropped = ns.walk_stage(grid, score)
+    assert calls == [1.0, 2.0, 4.0, 0.5, 0.25]
+    np.testing.assert_array_equal(dropped, [0, -1, 0, 0, 0, 0])
+    assert ns.best_scale(grid, objective, dropped) == 2.0
+
+
+def test_search_passes_the_stop_through_and_its_verdict_says_what_was_not_run(monkeypatch):
+    """Scores stubbed: the likelihood falls at x2 in both stages, so the walk runs x1 and x2
+    of each (x1 of the second stage is the first's run), and the verdict line names the runs
+    not made; with the stop off every candidate runs."""
+    controls, obs, poses = _log()
+    params = _true_params()
+
+    def stub(config, key, candidate, *args):
+        return ns.RunScore(-float(candidate.range_std_floor / params.range_std_floor)
+                           - float(candidate.rot1_noise[2] / params.rot1_noise[2]), 0)
+
+    monkeypatch.setattr(ns, "run_score", stub)
+    _, found = ns.search_noise_scales(CONFIG, jax.random.PRNGKey(0), params, controls, obs,
+                                      poses[0])
+    np.testing.assert_array_equal(found.motion_dropped, [0, 0, -1, -1])
+    np.testing.assert_array_equal(found.observation_dropped, [0, 0, -1, -1])
+    _, everything = ns.search_noise_scales(CONFIG, jax.random.PRNGKey(0), params, controls,
+                                           obs, poses[0], stop_at_first_drop=False)
+    assert np.all(everything.motion_dropped == 0) and np.all(everything.observation_dropped == 0)
+    monkeypatch.setattr(self_calibration, "search_noise_scales",
+                        lambda *args, **kwargs: (params, found))
+    lines = []
+    self_calibration._scale_search(CONFIG, None, params, controls, obs, poses[0],
+                                   ns.DEFAULT_SCALES, types.SimpleNamespace(
+                                       motion_fitted=True, observation_fitted=True),
+                                   lines.append)
+    assert "nan where not run" in lines[0] and "births dropped" not in lines[0]
 
 
 def test_run_score_counts_the_births_a_full_map_dropped():
