@@ -521,9 +521,9 @@ def add_regime_arguments(parser: argparse.ArgumentParser) -> None:
                              "the logs whose online final error it reproduces bit for bit")
 
 
-def forests_of(args: argparse.Namespace) -> int:
-    """Forests behind the first ``args.first`` of ``args.runs`` logs (``make_logs``' order)."""
-    first = args.runs if args.first is None else args.first
+def forests_of(args: argparse.Namespace, first: int) -> int:
+    """Forests behind the first ``first`` of ``args.runs`` logs (``make_logs``' order;
+    ``regime_histories`` returns ``first``)."""
     return first // (args.runs // args.forests)
 
 
@@ -595,8 +595,8 @@ def main(argv=None):
                   for name in per_loop[0]})
     table.update({f"split_{name}": np.concatenate([split[name] for split in per_split])
                   for name in per_split[0]})
-    write_outputs("lineage_check.py", argv, [" ".join(notes)] + tables(table, forests_of(args)),
-                  table, args.out)
+    write_outputs("lineage_check.py", argv,
+                  [" ".join(notes)] + tables(table, forests_of(args, first)), table, args.out)
 
 
 if __name__ == "__main__":

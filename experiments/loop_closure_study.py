@@ -168,7 +168,7 @@ def main(argv=None):
                                              else bool)
                   for name, values in joins.items()})
     write_outputs("loop_closure_study.py", argv,
-                  [" ".join(notes)] + tables(table, forests_of(args)), table, args.out)
+                  [" ".join(notes)] + tables(table, forests_of(args, first)), table, args.out)
 
 
 if __name__ == "__main__":

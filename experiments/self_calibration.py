@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import pathlib
 import time
-import types
 from typing import NamedTuple
 
 import jax
@@ -144,8 +143,9 @@ def burst_rms_factor(info) -> float:
     ``motion_outlier_scale`` from ``CalibrationInfo.values``), 1 when it fitted none."""
     if not info.bursts_fitted:
         return 1.0
-    fitted = types.SimpleNamespace(motion_outlier_probability=info.values[
-        "motion_outlier_probability"], motion_outlier_scale=info.values["motion_outlier_scale"])
+    fitted = default_params(dtype=jnp.float64, **{
+        name: info.values[name] for name in ("motion_outlier_probability",
+                                             "motion_outlier_scale")})
     return float(np.sqrt(burst_variance_factor(fitted)))
 
 

@@ -72,7 +72,9 @@ def test_recovers_the_noise_groups_within_stated_intervals():
     # the returned bursts are the defensive ones it keeps.
     assert info.bursts_fitted in (True, False)
     bursts = (info.values["motion_outlier_probability"], info.values["motion_outlier_scale"])
-    if not info.bursts_fitted:
+    if info.bursts_fitted:
+        assert not np.allclose(bursts, sc.defensive_bursts(CONFIG), rtol=1e-6)
+    else:
         np.testing.assert_allclose(bursts, sc.defensive_bursts(CONFIG), rtol=1e-6)
     # The stated intervals are EM's: on this known-association log the likelihood search
     # must keep EM's noise (x1) for them to apply to the returned settings.
