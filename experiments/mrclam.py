@@ -93,6 +93,8 @@ def main(argv=None):
                  if args.close_loops else ""),
               flush=True)
         if run.calibration is not None:
+            print("   EM's log marginal likelihood per iteration:",
+                  np.round(run.calibration.objective, 1).tolist())
             print("   fitted:", {k: (np.round(v, 5).tolist() if isinstance(v, tuple)
                                     else round(v, 5)) for k, v in run.calibration.values.items()})
         for line in run.warnings:

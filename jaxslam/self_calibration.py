@@ -30,7 +30,10 @@ estimation use, with the particle filter as the E-step's data associator:
       5. monitor EM by the particle filter's own log marginal likelihood estimate (the sum
          of ``Trace.log_evidence``); when the iterations do not converge, return the
          settings whose run scored best (an iteration that broke the association scores
-         low);
+         low); stop once ``patience`` runs in a row scored below the best earlier run
+         (``_stalled``): a Monte Carlo EM's likelihood need not rise every iteration, but
+         on the logs measured (docs/results.md, calibration_time) it did not come back
+         once it had fallen twice, and each further iteration costs a filter run;
       6. limit each noise group's move to a factor ``TRUST_FACTOR`` an iteration
          (``_trust_region``), and stop when every group's typical std moved by less than
          ``tol`` (relative);
@@ -57,9 +60,9 @@ fit's core std on some logs, the path and association EM converged to) is not in
 for the motion groups that part is often the larger (docs/results.md, self_calibration,
 "Do the stated intervals hold the truth?").
 
-Cost: one filter run per iteration (plus the scale search's runs on the same compiled filter:
-at most 7 with the default grid, 6 when EM did not converge, fewer when a stage's score falls
-past its peak), plus the smoother (0.15-0.35 of a run per iteration on MRCLAM robot 1 and on
+Cost: one filter run per iteration, at most ``iterations`` (4 of 6 on MRCLAM robot 1 with
+``patience``), plus the scale search's runs on the same compiled filter (at most 7 with the
+default grid, 6 when EM did not converge, fewer when a stage's score falls past its peak), plus the smoother (0.15-0.35 of a run per iteration on MRCLAM robot 1 and on
 the simulated loop of ``benchmarks/calibration.py``), plus a few per cent
 for the rest. Between the filter runs the library's models run on the host in float64 on
 shapes fixed for the log (``host.in_float64``), and the noise fits in
@@ -103,7 +106,9 @@ class CalibrationInfo(NamedTuple):
       iterations: EM iterations run.
       objective: (iterations,) the filter's estimate of the log marginal likelihood of the
         log with each iteration's Params (``Trace.log_evidence`` summed over steps).
-      smoother_cost: (iterations,) the smoother's final robust cost per residual row.
+      smoother_cost: (M,) the smoother's final robust cost per residual row of each M-step
+        (M = iterations, or fewer when EM stopped before an M-step: ``patience``, a failed
+        smoothing).
       typical_std: (iterations + 1, 4) typical std of the four noise groups (heading [rad],
         translation [m], range [m], bearing [rad]: the root mean square of the model's std over
         the log's moves and observations, ``calibration_residuals.typical_stds``) before
@@ -388,6 +393,15 @@ def _best_run(objective, dropped) -> int:
     return int(np.argmax(np.where(np.isfinite(scores), scores, -np.inf)))
 
 
+def _stalled(objective, dropped, patience: int | None) -> bool:
+    """Whether the last ``patience`` filter runs all scored below the best run before them,
+    chosen by ``_best_run``'s rule (the first run never counts as best; runs whose map
+    overflowed count only when every run's did). objective (R,), dropped (R,). None: never."""
+    if patience is None:
+        return False
+    return len(objective) - 1 - _best_run(objective, dropped) >= patience
+
+
 def _fit_warnings(last: _MStep | None, steps: int) -> list[str]:
     out = []
     if last is None or not last.motion_fitted:
@@ -409,6 +423,13 @@ def _progress_line(iteration: int, objective: float, typical, change: float,
             f"typical stds heading {typical[0]:.4g} rad, translation {typical[1]:.4g} m, "
             f"range {typical[2]:.4g} m, bearing {typical[3]:.4g} rad (largest change "
             f"{change:.1%})")
+
+
+def _stalled_line(iteration: int, objective, dropped, patience: int) -> str:
+    best = _best_run(objective, dropped)
+    return (f"calibration iteration {iteration}: log marginal likelihood {objective[-1]:.1f}; "
+            f"the last {patience} runs all scored below iteration {best + 1}'s "
+            f"{objective[best]:.1f}: EM stops (not converged)")
 
 
 def _scale_search(config, key, params, controls, observations, start, scales, last: _MStep,
@@ -464,7 +485,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                      motion_model: str | None = None, iterations: int = 6, tol: float = 0.05,
                      calibrate_sensor: bool = True, smoother_iterations: int = 15,
                      merge_landmarks: bool = False, scale_search: bool = True,
-                     scales=DEFAULT_SCALES,
+                     scales=DEFAULT_SCALES, patience: int | None = 2,
                      progress=None) -> tuple[Params, CalibrationInfo]:
     """Estimate the filter's settings from one log, with no ground truth (module docstring).
 
@@ -478,6 +499,10 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         calibration does not estimate are kept from it.
       iterations: most EM iterations. tol: stop when every noise group's typical std moved
         by less than this fraction in one iteration.
+      patience: also stop (not converged) once this many filter runs in a row scored a log
+        marginal likelihood below the best run before them (``_stalled``); the best run's
+        settings are then returned, as when ``iterations`` runs out. None: run until
+        ``tol`` or ``iterations``. Must be >= 1.
       calibrate_sensor: also estimate max_range, miss_range, detection and false-alarm
         probabilities and the gate (else only the noise).
       smoother_iterations: most Levenberg-Marquardt steps of each smoothing.
@@ -505,6 +530,10 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
       the groups it could not fit, and says so in ``info.warnings`` and ``info.verdict``.
     """
     log = _checked_log(controls, observations, initial_pose, iterations, tol)
+    if patience is not None and not (isinstance(patience, (int, np.integer))
+                                       and not isinstance(patience, bool) and patience >= 1):
+        raise ValueError(f"calibrate_params needs patience >= 1 (an int) or None; got "
+                         f"{patience!r}")
     scales = check_scales("scales", scales)
     motion_model = motion_model or config.motion_model
     params = starting_params(config) if params is None else params
@@ -519,7 +548,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                                        (warning,), None, np.zeros(0, np.int64))
     objective, dropped, costs, typical, evaluated, warnings = [], [], [], [], [], []
     values = {}
-    converged, last, m_steps = False, None, []
+    converged, stalled, last, m_steps = False, False, None, []
     controls = jnp.asarray(log.controls, dtype)
     for done in range(1, iterations + 1):
         odometry = np.asarray(control_to_odometry(controls, params, motion_model), np.float64)
@@ -529,6 +558,11 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         objective.append(float(np.sum(np.asarray(trace.log_evidence))))
         dropped.append(int(np.sum(np.asarray(trace.num_dropped_births))))
         evaluated.append(params)
+        if _stalled(objective, dropped, patience):
+            stalled = True
+            if progress is not None:
+                progress(_stalled_line(done, objective, dropped, patience))
+            break
         step = _m_step(config, params, log, odometry,
                        _best_history(trace.lineage, final.log_weight), done, calibrate_sensor,
                        smoother_iterations, merge_landmarks)
@@ -572,8 +606,15 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         chosen += "; no noise-scale search (nothing was fitted)"
     typical.append(typical_stds(params, odometry, z_range))
     warnings += _fit_warnings(last, steps)
-    verdict = ("converged" if converged else f"not converged after {done} iterations "
-               f"(the last moved a noise std by more than {tol:.0%})") + chosen
+    if converged:
+        verdict = "converged"
+    elif stalled:
+        verdict = (f"not converged: stopped after {done} iterations (the last {patience} "
+                   f"scored a lower log marginal likelihood than an earlier one)")
+    else:
+        verdict = (f"not converged after {done} iterations (the last moved a noise std by "
+                   f"more than {tol:.0%})")
+    verdict += chosen
     if warnings:
         verdict += "; partly calibrated (see warnings)"
     relative_std, samples, bursts_fitted = _stated_errors(m_steps, source, steps)

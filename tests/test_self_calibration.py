@@ -431,3 +431,62 @@ def test_dropped_births_recorded_when_the_map_overflows():
     assert want > 0
     np.testing.assert_array_equal(info.dropped_births, [want])
     assert f"map full: {want} births dropped" in lines[0]
+
+
+@pytest.mark.parametrize("objective, dropped, patience, expected", [
+    ([5.0, 9.0, 7.0], [0, 0, 0], 2, False),              # one run below the best: go on
+    ([5.0, 9.0, 7.0, 8.0], [0, 0, 0, 0], 2, True),       # two in a row below run 1
+    ([5.0, 9.0, 7.0, 8.0], [0, 0, 0, 0], 3, False),
+    ([5.0, 9.0, 7.0, 8.0], [0, 0, 0, 0], None, False),   # None never stops
+    ([5.0, 9.0, 7.0, 10.0, 6.0], [0, 0, 0, 0, 0], 2, False),  # came back: counts anew
+    ([99.0, 1.0, 2.0, 3.0], [0, 0, 0, 0], 1, False),     # the starting run is never the best
+    ([5.0, 9.0, 7.0, 8.0], [0, 3, 0, 0], 2, False),      # run 1 overflowed: run 3 is best
+    ([5.0, 9.0, 7.0, 8.0], [0, 3, 2, 1], 2, True),       # all overflowed: the score alone
+    ([5.0, np.nan, np.nan, np.nan], [0, 0, 0, 0], 2, False),  # no finite score: no best
+])
+def test_stalled_counts_the_runs_since_the_best(objective, dropped, patience, expected):
+    assert sc._stalled(objective, dropped, patience) is expected
+
+
+def test_patience_stops_em_and_returns_the_best_run(monkeypatch):
+    """EM's filter runs scripted to score 0, 10, 5, 4, 3 (the real runs, their log evidence
+    replaced): with patience 2 EM stops after the fourth run, without its M-step, and returns
+    the same settings as the full five iterations (run 1's, the best after the first); the
+    verdict and the progress line say why it stopped."""
+    from jaxslam import filter as filter_module
+
+    scores = [0.0, 10.0, 5.0, 4.0, 3.0]
+    scripted = iter(scores)
+
+    def scored_run(*args, **kwargs):
+        final, trace = filter_module.run_filter(*args, **kwargs)
+        total = next(scripted)
+        evidence = jnp.zeros_like(trace.log_evidence).at[0].set(total)
+        return final, trace._replace(log_evidence=evidence)
+
+    monkeypatch.setattr(sc, "run_filter", scored_run)
+    controls, obs, poses = _log()
+    lines = []
+    options = dict(iterations=5, tol=1e-9, scale_search=False)
+    stopped, info = sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs,
+                                        poses[0], progress=lines.append, **options)
+    scripted = iter(scores)
+    full, full_info = sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs,
+                                          poses[0], patience=None, **options)
+    assert info.iterations == 4 and full_info.iterations == 5
+    np.testing.assert_array_equal(info.objective, [0.0, 10.0, 5.0, 4.0])
+    assert len(info.smoother_cost) == 3 and len(full_info.smoother_cost) == 5
+    assert not info.converged and "stopped after 4 iterations" in info.verdict
+    assert "returned iteration 2's settings" in info.verdict
+    assert "returned iteration 2's settings" in full_info.verdict
+    assert "below iteration 2's 10.0: EM stops" in lines[-1]
+    for name in info.values:
+        np.testing.assert_array_equal(np.asarray(getattr(stopped, name)),
+                                      np.asarray(getattr(full, name)))
+
+
+@pytest.mark.parametrize("bad", [0, 1.5, True, -1])
+def test_bad_patience(bad):
+    controls, obs, _ = _log()
+    with pytest.raises(ValueError, match="patience >= 1"):
+        sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, patience=bad)
