@@ -30,10 +30,11 @@ estimation use, with the particle filter as the E-step's data associator:
       5. monitor EM by the particle filter's own log marginal likelihood estimate (the sum
          of ``Trace.log_evidence``); when the iterations do not converge, return the
          settings whose run scored best (an iteration that broke the association scores
-         low); stop once ``patience`` runs in a row scored below the best earlier run
-         (``_stalled``): a Monte Carlo EM's likelihood need not rise every iteration, but
-         on the logs measured (docs/results.md, calibration_time) it did not come back
-         once it had fallen twice, and each further iteration costs a filter run;
+         low); stop once the last ``patience`` runs did not beat the best run before them
+         (the first run never counts as best; ``_stalled``): a Monte Carlo EM's likelihood
+         need not rise every iteration, but on the logs measured (docs/results.md,
+         calibration_time) it did not come back once it had fallen twice below its best,
+         and each further iteration costs a filter run;
       6. limit each noise group's move to a factor ``TRUST_FACTOR`` an iteration
          (``_trust_region``), and stop when every group's typical std moved by less than
          ``tol`` (relative);
@@ -62,12 +63,13 @@ for the motion groups that part is often the larger (docs/results.md, self_calib
 
 Cost: one filter run per iteration, at most ``iterations`` (4 of 6 on MRCLAM robot 1 with
 ``patience``), plus the scale search's runs on the same compiled filter (at most 7 with the
-default grid, 6 when EM did not converge, fewer when a stage's score falls past its peak), plus the smoother (0.15-0.35 of a run per iteration on MRCLAM robot 1 and on
-the simulated loop of ``benchmarks/calibration.py``), plus a few per cent
-for the rest. Between the filter runs the library's models run on the host in float64 on
-shapes fixed for the log (``host.in_float64``), and the noise fits in
-NumPy/SciPy (``noise_fit``): the number of associated observations changes with every
-iteration's association, and jitted code of that shape would compile anew each time.
+default grid, 6 when EM did not converge, fewer when a stage's score falls past its peak),
+plus the smoother (0.15-0.35 of a run per iteration on MRCLAM robot 1 and on the simulated
+loop of ``benchmarks/calibration.py``), plus a few per cent for the rest. Between the filter
+runs the library's models run on the host in float64 on shapes fixed for the log
+(``host.in_float64``), and the noise fits in NumPy/SciPy (``noise_fit``): the number of
+associated observations changes with every iteration's association, and jitted code of that
+shape would compile anew each time.
 
 Shapes: T steps, K observations per step, S associated observations, L smoothed landmarks.
 """
@@ -116,7 +118,9 @@ class CalibrationInfo(NamedTuple):
       values: the final settings, a dict of floats or tuples (the fitted ``Params`` fields).
       relative_std: dict group -> relative standard error of its std (module docstring),
         from the M-steps behind the returned settings: the sampling error of the group's
-        residuals only. On held-out simulated logs (32: 2 regimes x 2 log sets x 8) the truth
+        residuals only. On held-out simulated logs (32: 2 regimes x 2 log sets x 8; measured
+        before ``patience`` stopped EM early, which moved one log set's count from 46 to 44
+        of 64, docs/results.md, calibration_time) the truth
         lay within 1 +- 1.96 relative_std in 56 of 64 cases for the sensor groups and in 44
         of 64 for the motion groups (33 of 64 with the chi-square figure alone): EM's motion
         estimate can sit below the truth, which no spread of the residuals shows (the
@@ -257,6 +261,15 @@ class _Log(NamedTuple):
     valid: np.ndarray  # (T, K) valid and finite
 
 
+def _check_patience(patience) -> None:
+    if patience is None:
+        return
+    whole = isinstance(patience, (int, np.integer)) and not isinstance(patience, bool)
+    if not whole or patience < 1:
+        raise ValueError(f"calibrate_params needs patience >= 1 (an int) or None; got "
+                         f"{patience!r}")
+
+
 def _checked_log(controls, observations: Observations, initial_pose, iterations: int,
                  tol: float) -> _Log:
     if iterations < 1 or not tol > 0:
@@ -394,9 +407,10 @@ def _best_run(objective, dropped) -> int:
 
 
 def _stalled(objective, dropped, patience: int | None) -> bool:
-    """Whether the last ``patience`` filter runs all scored below the best run before them,
-    chosen by ``_best_run``'s rule (the first run never counts as best; runs whose map
-    overflowed count only when every run's did). objective (R,), dropped (R,). None: never."""
+    """Whether none of the last ``patience`` filter runs is the best so far by ``_best_run``'s
+    rule (the first run never counts as best; a run whose map overflowed counts only when
+    every run's did, so such a run does not beat a lower fair one; a tie keeps the earlier
+    run). objective (R,), dropped (R,). None: never. Can first hold after patience + 2 runs."""
     if patience is None:
         return False
     return len(objective) - 1 - _best_run(objective, dropped) >= patience
@@ -428,7 +442,7 @@ def _progress_line(iteration: int, objective: float, typical, change: float,
 def _stalled_line(iteration: int, objective, dropped, patience: int) -> str:
     best = _best_run(objective, dropped)
     return (f"calibration iteration {iteration}: log marginal likelihood {objective[-1]:.1f}; "
-            f"the last {patience} runs all scored below iteration {best + 1}'s "
+            f"none of the last {patience} runs beat iteration {best + 1}'s "
             f"{objective[best]:.1f}: EM stops (not converged)")
 
 
@@ -502,7 +516,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
       patience: also stop (not converged) once this many filter runs in a row scored a log
         marginal likelihood below the best run before them (``_stalled``); the best run's
         settings are then returned, as when ``iterations`` runs out. None: run until
-        ``tol`` or ``iterations``. Must be >= 1.
+        ``tol`` or ``iterations``. Must be >= 1; can only stop EM when
+        ``iterations >= patience + 2`` (the first run never counts as best).
       calibrate_sensor: also estimate max_range, miss_range, detection and false-alarm
         probabilities and the gate (else only the noise).
       smoother_iterations: most Levenberg-Marquardt steps of each smoothing.
@@ -530,10 +545,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
       the groups it could not fit, and says so in ``info.warnings`` and ``info.verdict``.
     """
     log = _checked_log(controls, observations, initial_pose, iterations, tol)
-    if patience is not None and not (isinstance(patience, (int, np.integer))
-                                       and not isinstance(patience, bool) and patience >= 1):
-        raise ValueError(f"calibrate_params needs patience >= 1 (an int) or None; got "
-                         f"{patience!r}")
+    _check_patience(patience)
     scales = check_scales("scales", scales)
     motion_model = motion_model or config.motion_model
     params = starting_params(config) if params is None else params
@@ -609,8 +621,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     if converged:
         verdict = "converged"
     elif stalled:
-        verdict = (f"not converged: stopped after {done} iterations (the last {patience} "
-                   f"scored a lower log marginal likelihood than an earlier one)")
+        verdict = (f"not converged: stopped after {done} iterations (none of the last "
+                   f"{patience} runs beat the best log marginal likelihood before them)")
     else:
         verdict = (f"not converged after {done} iterations (the last moved a noise std by "
                    f"more than {tol:.0%})")

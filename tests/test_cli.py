@@ -531,3 +531,23 @@ def test_calibration_print_divides_the_search_scale_out(capsys):
                                     "rad", "used)"]
     assert lines["translation"][1:6] == ["0.1", "m", "+-", "20", "%"]
     assert lines["range"][1:] == ["0.05", "m", "+-", "0.2", "%"]
+
+
+def test_em_patience_option_reaches_the_calibration():
+    """``--em-patience N`` is calibrate_params' patience, 0 is None (no early stop); a
+    negative count is refused with a message naming the flag."""
+    import argparse
+
+    from jaxslam.cli.common import UsageError
+    from jaxslam.cli.logs import _calibration_options
+    from jaxslam.cli.parser import build_parser
+
+    parser = build_parser()
+    for command in (["calibrate", "--data", "x.npz", "--out", "p.toml"], ["run", "--data", "x.npz"]):
+        assert _calibration_options(parser.parse_args(command))["patience"] == 2
+        given = parser.parse_args(command + ["--em-patience", "3"])
+        assert _calibration_options(given) == {"scale_search": True, "patience": 3}
+        assert _calibration_options(parser.parse_args(command + ["--em-patience", "0"]))[
+            "patience"] is None
+    with pytest.raises(UsageError, match="--em-patience must be 0"):
+        _calibration_options(argparse.Namespace(em_patience=-1, no_scale_search=False))

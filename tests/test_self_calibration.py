@@ -479,14 +479,22 @@ def test_patience_stops_em_and_returns_the_best_run(monkeypatch):
     assert not info.converged and "stopped after 4 iterations" in info.verdict
     assert "returned iteration 2's settings" in info.verdict
     assert "returned iteration 2's settings" in full_info.verdict
-    assert "below iteration 2's 10.0: EM stops" in lines[-1]
+    assert "none of the last 2 runs beat iteration 2's 10.0: EM stops" in lines[-1]
+    # the ranking assumed no run overflowed the map; both runs fitted the same fields
+    assert not np.any(info.dropped_births) and not np.any(full_info.dropped_births)
+    assert info.values and set(info.values) == set(full_info.values)
     for name in info.values:
         np.testing.assert_array_equal(np.asarray(getattr(stopped, name)),
                                       np.asarray(getattr(full, name)))
 
 
-@pytest.mark.parametrize("bad", [0, 1.5, True, -1])
+@pytest.mark.parametrize("bad", [0, 1.5, True, -1, "2"])
 def test_bad_patience(bad):
     controls, obs, _ = _log()
     with pytest.raises(ValueError, match="patience >= 1"):
         sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, patience=bad)
+
+
+@pytest.mark.parametrize("good", [None, 1, 3, np.int64(2)])
+def test_good_patience_passes_the_check(good):
+    sc._check_patience(good)  # raises on anything else (test_bad_patience)

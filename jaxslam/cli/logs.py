@@ -258,8 +258,14 @@ def _filter_log(args, log):
 
 
 def _calibration_options(args) -> dict:
-    """``calibrate_params`` keywords from the command line (``--no-scale-search``)."""
-    return {"scale_search": not getattr(args, "no_scale_search", False)}
+    """``calibrate_params`` keywords from the command line (``--no-scale-search``,
+    ``--em-patience N``, 0 for none)."""
+    patience = getattr(args, "em_patience", 2)
+    if patience < 0:
+        raise UsageError(f"--em-patience must be 0 (no early stop) or a positive number "
+                         f"of filter runs; got {patience}")
+    return {"scale_search": not getattr(args, "no_scale_search", False),
+            "patience": patience or None}
 
 
 def cmd_calibrate(args) -> int:

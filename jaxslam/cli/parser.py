@@ -113,6 +113,11 @@ def _add_no_scale_search(parser, prefix: str = "") -> None:
                         help=f"{prefix}calibrate by EM alone, without multiplying the noise by "
                              "the scales of highest filter likelihood afterwards (faster: "
                              "up to 7 fewer filter runs) (default: off: search)")
+    parser.add_argument("--em-patience", type=int, default=2, metavar="N",
+                        help=f"{prefix}stop the calibration's EM once N filter runs in a row "
+                             "have not beaten the best log marginal likelihood before them, "
+                             "and keep that best run's settings; 0: run until the noise stops "
+                             "moving or 6 iterations (default: 2)")
 
 
 def _add_calibrate(sub) -> None:
