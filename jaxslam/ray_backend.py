@@ -19,6 +19,9 @@ import pathlib
 import time
 from typing import NamedTuple
 
+# JAX settings that change the numbers a program computes: an actor (a fresh process, which
+# starts with JAX's defaults) takes the driver's, so its chunks equal the local backend's.
+MIRRORED_JAX_SETTINGS = ("jax_enable_x64", "jax_disable_most_optimizations")
 RAY_MISSING = ("the Ray backend needs the optional 'ray' extra, which is not installed: "
                "pip install 'jaxslam[ray]'")
 
@@ -43,15 +46,17 @@ class WorkerTimes(NamedTuple):
 class StudyWorker:
     """One actor's state: a chunk runner built (and compiled) once, reused for every chunk.
 
-    ``enable_x64`` mirrors the driver's ``jax_enable_x64`` so an actor computes in the same
-    precision as the local backend would (a fresh worker process starts with JAX defaults).
+    ``jax_settings`` holds the driver's values of ``MIRRORED_JAX_SETTINGS`` (precision and
+    XLA's optimisation, which changes rounding), so an actor compiles the same programs as
+    the local backend would (a fresh worker process starts with JAX's defaults).
     Plain Python: ``run_study_ray`` wraps it with ``ray.remote``; it also runs in-process.
     """
 
-    def __init__(self, config, out_dir: str, enable_x64: bool):
+    def __init__(self, config, out_dir: str, jax_settings: dict):
         import jax
 
-        jax.config.update("jax_enable_x64", bool(enable_x64))
+        for name in MIRRORED_JAX_SETTINGS:
+            jax.config.update(name, bool(jax_settings[name]))
         from jaxslam import studies
 
         self.config = config
@@ -143,7 +148,8 @@ def _run_pending(ray, config, out_dir, pending, num_workers, address, progress,
             if started_ray:
                 ray.init(address=address)
             actor = ray.remote(**(worker_options or {"num_cpus": 1}))(StudyWorker)
-            workers = [actor.remote(config, str(out_dir), bool(jax.config.jax_enable_x64))
+            settings = {name: jax.config.read(name) for name in MIRRORED_JAX_SETTINGS}
+            workers = [actor.remote(config, str(out_dir), settings)
                        for _ in range(min(num_workers, len(pending)))]
             bar = tqdm(total=len(pending), desc=f"study {config.name} (ray)", unit="chunk",
                        disable=not progress)

@@ -57,8 +57,9 @@ def assert_same_results(out_a, out_b):
 
 
 def stamps(out_dir, pattern):
+    """name -> (inode, mtime) of the files under ``out_dir`` (runs/, traces/) matching."""
     return {p.name: (p.stat().st_ino, p.stat().st_mtime_ns)
-            for p in pathlib.Path(out_dir).glob(pattern)}
+            for p in pathlib.Path(out_dir).rglob(pattern)}
 
 
 @pytest.fixture(scope="module")
@@ -90,8 +91,10 @@ def test_ray_matches_local_and_resumes_across_backends(local_ray, tmp_path):
     # nothing already on disk.
     mixed = tmp_path / "mixed"
     shutil.copytree(tmp_path / "local", mixed)
-    (mixed / "chunk-000002-000004.parquet").unlink()
+    (mixed / "runs/chunk-000002-000004.parquet").unlink()
+    (mixed / "traces/traces-000002-000004.npz").unlink()
     kept = stamps(mixed, "*000000-000002*")
+    assert len(kept) == 2  # the chunk and its traces
     ray_backend.run_study_ray(config, mixed, num_workers=2, progress=False)
     assert stamps(mixed, "*000000-000002*") == kept
     assert_same_results(mixed, tmp_path / "local")
@@ -107,7 +110,9 @@ def test_ray_matches_local_and_resumes_across_backends(local_ray, tmp_path):
 
 @needs_ray
 @pytest.mark.slow
-def test_ray_refuses_a_different_study_and_a_corrupt_chunk(local_ray, tmp_path):
+def test_ray_refuses_a_different_study_and_moves_a_damaged_chunk_aside(local_ray, tmp_path):
+    """As the local backend: another study's folder is refused; a damaged chunk is reported
+    by name, kept in damaged/ and recomputed, to the local backend's results."""
     config = studies.load_study_config(None, TINY)
     out = tmp_path / "out"
     out.mkdir()
@@ -117,8 +122,12 @@ def test_ray_refuses_a_different_study_and_a_corrupt_chunk(local_ray, tmp_path):
         ray_backend.run_study_ray(config, out, progress=False)
     (out / "study.toml").unlink()
     garbage = b"not a parquet file"
-    (out / "chunk-000002-000004.parquet").write_bytes(garbage)
-    with pytest.raises(studies.StudyError, match="chunk-000002-000004.parquet"):
+    (out / "runs").mkdir()
+    (out / "runs/chunk-000002-000004.parquet").write_bytes(garbage)
+    with pytest.warns(UserWarning, match="chunk-000002-000004.parquet"):
         ray_backend.run_study_ray(config, out, progress=False)
-    assert (out / "chunk-000002-000004.parquet").read_bytes() == garbage
-    assert not list(out.glob("chunk-000000-*"))  # refused before computing anything
+    moved = [p for p in (out / "damaged").iterdir()
+             if p.name.startswith("chunk-000002-000004.parquet")]
+    assert len(moved) == 1 and moved[0].read_bytes() == garbage  # kept, not deleted
+    studies.run_study(config, tmp_path / "local", progress=False)
+    assert_same_results(out, tmp_path / "local")

@@ -24,7 +24,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxslam import studies
+from jaxslam import ray_backend, studies
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
 TIMING_COLUMNS = ("update_rate_hz",)
@@ -176,7 +176,8 @@ _CHILD = """
 import json, sys
 import jax
 args = json.loads(sys.argv[1])
-jax.config.update("jax_enable_x64", args["x64"])
+for name, value in args["jax"].items():  # this test process's settings (conftest's)
+    jax.config.update(name, value)
 from jaxslam import studies
 config = studies.study_config_from_dict(args["config"])
 studies.run_study(config, args["out"], progress=False)
@@ -197,7 +198,9 @@ def test_two_devices_are_bit_identical(reference, tmp_path, run_width):
     script = tmp_path / "child.py"
     script.write_text(_CHILD)
     payload = json.dumps(dict(config=studies.study_config_to_dict(config),
-                              out=str(tmp_path / "two"), x64=bool(jax.config.jax_enable_x64)))
+                              out=str(tmp_path / "two"),
+                              jax={name: bool(jax.config.read(name))
+                                   for name in ray_backend.MIRRORED_JAX_SETTINGS}))
     env = dict(os.environ, PYTHONPATH=str(REPO),
                XLA_FLAGS="--xla_force_host_platform_device_count=2")
     child = subprocess.run([sys.executable, str(script), payload], capture_output=True,
