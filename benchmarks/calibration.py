@@ -12,6 +12,7 @@ minutes on 2 cores) when their folders are given.
 
     python benchmarks/calibration.py [--particles 100] [--stages]
     python benchmarks/calibration.py --mrclam DIR     # or JAXSLAM_MRCLAM=DIR; --skip-mrclam
+    python benchmarks/calibration.py --only mrclam --mrclam DIR --robots 1 2 3 4 5
     python benchmarks/calibration.py --only victoria_park --victoria-park DIR
 
 How to read a line:
@@ -160,6 +161,8 @@ def main(argv=None):
                         help="folder of the UTIAS MRCLAM data set 1 files (default: "
                         "$JAXSLAM_MRCLAM; without either, MRCLAM is skipped)")
     parser.add_argument("--skip-mrclam", action="store_true")
+    parser.add_argument("--robots", type=int, nargs="+", default=[1],
+                        help="MRCLAM robots to calibrate, each its own line (default: 1)")
     parser.add_argument("--victoria-park", type=pathlib.Path,
                         default=os.environ.get("JAXSLAM_VICTORIA_PARK"),
                         help="folder of the Victoria Park files (default: "
@@ -179,15 +182,16 @@ def main(argv=None):
                                              max_obs=12), controls, obs, poses[0], args.stages)
     if "mrclam" in only and not args.skip_mrclam:
         if args.mrclam is None or not pathlib.Path(args.mrclam).is_dir():
-            print(f"MRCLAM robot 1: skipped (no data folder: give --mrclam DIR or set "
+            print(f"MRCLAM: skipped (no data folder: give --mrclam DIR or set "
                   f"JAXSLAM_MRCLAM; got {args.mrclam})")
         else:
             from jaxslam.datasets.mrclam import load_mrclam
             from jaxslam.pipeline import log_inputs
 
-            log = load_mrclam(pathlib.Path(args.mrclam), 1)
-            bench("MRCLAM robot 1", *log_inputs(log, FilterConfig(
-                num_particles=args.particles, max_landmarks=64)), args.stages)
+            for robot in args.robots:
+                log = load_mrclam(pathlib.Path(args.mrclam), robot)
+                bench(f"MRCLAM robot {robot}", *log_inputs(log, FilterConfig(
+                    num_particles=args.particles, max_landmarks=64)), args.stages)
     if "victoria_park" in only:
         if args.victoria_park is None or not pathlib.Path(args.victoria_park).is_dir():
             print(f"Victoria Park: skipped (no data folder: give --victoria-park DIR or set "

@@ -14,7 +14,7 @@ def test_missing_data_folders_are_skipped_by_name(load_benchmark, tmp_path, caps
                     "--victoria-park", str(missing)])
     out = capsys.readouterr().out
     assert calls == []  # the simulated loop was not asked for, the others have no data
-    assert "MRCLAM robot 1: skipped" in out and "--mrclam DIR" in out
+    assert "MRCLAM: skipped" in out and "--mrclam DIR" in out
     assert "Victoria Park: skipped" in out and "--victoria-park DIR" in out
     assert str(missing) in out
 
@@ -27,3 +27,18 @@ def test_only_simulated_runs_the_simulated_loop_alone(load_benchmark, capsys, mo
     benchmark.main(["--only", "simulated", "--particles", "8"])
     assert calls == ["simulated loop"]
     assert "skipped" not in capsys.readouterr().out
+
+
+def test_robots_option_benches_each_named_robot(load_benchmark, tmp_path, monkeypatch):
+    """``--robots 2 4``: one line per robot, each robot's own log (the loader and the inputs
+    stubbed: no data needed)."""
+    from jaxslam import pipeline
+    from jaxslam.datasets import mrclam
+
+    benchmark = load_benchmark("calibration")
+    calls = []
+    monkeypatch.setattr(benchmark, "bench", lambda *args, **kwargs: calls.append(args[:2]))
+    monkeypatch.setattr(mrclam, "load_mrclam", lambda folder, robot: f"log of robot {robot}")
+    monkeypatch.setattr(pipeline, "log_inputs", lambda log, config: (log,))
+    benchmark.main(["--only", "mrclam", "--mrclam", str(tmp_path), "--robots", "2", "4"])
+    assert calls == [("MRCLAM robot 2", "log of robot 2"), ("MRCLAM robot 4", "log of robot 4")]
