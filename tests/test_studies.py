@@ -25,7 +25,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from jaxslam import studies, study_store
+from jaxslam import ray_backend, studies, study_store
 from jaxslam.types import Params
 
 PYTHON = sys.executable
@@ -480,7 +480,8 @@ _CHILD = """
 import json, sys, time
 import jax
 args = json.loads(sys.argv[1])
-jax.config.update("jax_enable_x64", args["x64"])
+for name, value in args["jax"].items():  # the test process's settings (conftest's)
+    jax.config.update(name, value)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_compilation_cache_dir", args["cache"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
@@ -509,8 +510,14 @@ def child_command(tmp_path, config, out, cache, chunk_delay=0.0):
     script = tmp_path / "child.py"
     script.write_text(_CHILD)
     args = dict(config=studies.study_config_to_dict(config), out=str(out), cache=str(cache),
-                chunk_delay=chunk_delay, x64=bool(jax.config.jax_enable_x64))
+                chunk_delay=chunk_delay, jax=child_jax_settings())
     return [PYTHON, str(script), json.dumps(args)]
+
+
+def child_jax_settings() -> dict:
+    """This process's JAX settings that change the numbers (x64, XLA's optimisation, turned
+    down by conftest: other rounding), for a child to compile the same programs."""
+    return {name: bool(jax.config.read(name)) for name in ray_backend.MIRRORED_JAX_SETTINGS}
 
 
 def child_env(**extra):

@@ -24,7 +24,8 @@ import jax
 import numpy as np
 import pytest
 
-from jaxslam import ray_backend, studies
+from jaxslam import studies
+from test_studies import child_jax_settings
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
 TIMING_COLUMNS = ("update_rate_hz",)
@@ -199,8 +200,7 @@ def test_two_devices_are_bit_identical(reference, tmp_path, run_width):
     script.write_text(_CHILD)
     payload = json.dumps(dict(config=studies.study_config_to_dict(config),
                               out=str(tmp_path / "two"),
-                              jax={name: bool(jax.config.read(name))
-                                   for name in ray_backend.MIRRORED_JAX_SETTINGS}))
+                              jax=child_jax_settings()))
     env = dict(os.environ, PYTHONPATH=str(REPO),
                XLA_FLAGS="--xla_force_host_platform_device_count=2")
     child = subprocess.run([sys.executable, str(script), payload], capture_output=True,
