@@ -7,7 +7,7 @@ one run and the whole calibration are timed back to back in this process, and th
 calibration / run. Everything else a calibration does, compiles included, counts against it:
 a user calls ``calibrate_params`` once, in a fresh process. Logs: a held-out simulated loop
 (the ``experiments/self_calibration.py`` generator: 250 steps, 40 trees), UTIAS MRCLAM
-robot 1 (3,809 steps) and Victoria Park (7,230 scans; its calibration takes about 8-15
+robot 1 (3,809 steps; ``--robots`` names others) and Victoria Park (7,230 scans; its calibration takes about 8-15
 minutes on 2 cores) when their folders are given.
 
     python benchmarks/calibration.py [--particles 100] [--stages]
@@ -161,7 +161,7 @@ def main(argv=None):
                         help="folder of the UTIAS MRCLAM data set 1 files (default: "
                         "$JAXSLAM_MRCLAM; without either, MRCLAM is skipped)")
     parser.add_argument("--skip-mrclam", action="store_true")
-    parser.add_argument("--robots", type=int, nargs="+", default=[1],
+    parser.add_argument("--robots", type=int, nargs="+", default=[1], choices=range(1, 6),
                         help="MRCLAM robots to calibrate, each its own line (default: 1)")
     parser.add_argument("--victoria-park", type=pathlib.Path,
                         default=os.environ.get("JAXSLAM_VICTORIA_PARK"),

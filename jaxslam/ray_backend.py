@@ -8,7 +8,8 @@ writes its own chunk files with ``studies.write_chunk`` into the shared output f
 driver, which holds the folder's lock, records each in the manifest): the same
 names and the same atomic writes as the local backend, so a study started on one backend
 resumes on the other. Run i depends only on ``fold_in(PRNGKey(seed), i)``, never on which
-actor ran it, so the results equal the local backend's bit for bit.
+actor ran it, and each actor takes the driver's ``MIRRORED_JAX_SETTINGS``, so on hosts of
+the driver's CPU type the results equal the local backend's bit for bit.
 
 On several hosts ``out_dir`` must be a folder every host sees under the same path (NFS, a
 mounted bucket...); each actor also shards its chunk over its host's local devices.
@@ -19,9 +20,18 @@ import pathlib
 import time
 from typing import NamedTuple
 
-# JAX settings that change the numbers a program computes: an actor (a fresh process, which
-# starts with JAX's defaults) takes the driver's, so its chunks equal the local backend's.
+# JAX settings a user (or this library's tests) may change that alter a program's numbers:
+# precision, and XLA's optimisation (other rounding). An actor, a fresh process that starts
+# with JAX's defaults, takes the driver's. Others (the PRNG implementation, matmul precision,
+# XLA_FLAGS) are not passed on: keep them at their defaults, or set them on every host.
 MIRRORED_JAX_SETTINGS = ("jax_enable_x64", "jax_disable_most_optimizations")
+
+
+def mirrored_jax_settings() -> dict:
+    """This process's values of ``MIRRORED_JAX_SETTINGS``: name -> bool."""
+    import jax
+
+    return {name: bool(jax.config.read(name)) for name in MIRRORED_JAX_SETTINGS}
 RAY_MISSING = ("the Ray backend needs the optional 'ray' extra, which is not installed: "
                "pip install 'jaxslam[ray]'")
 
@@ -49,7 +59,8 @@ class StudyWorker:
     ``jax_settings`` holds the driver's values of ``MIRRORED_JAX_SETTINGS`` (precision and
     XLA's optimisation, which changes rounding), so an actor compiles the same programs as
     the local backend would (a fresh worker process starts with JAX's defaults).
-    Plain Python: ``run_study_ray`` wraps it with ``ray.remote``; it also runs in-process.
+    Plain Python: ``run_study_ray`` wraps it with ``ray.remote``; in-process it sets those
+    settings for the whole process.
     """
 
     def __init__(self, config, out_dir: str, jax_settings: dict):
@@ -136,7 +147,6 @@ def run_study_ray(config, out_dir, num_workers: int = 2, address: str | None = N
 def _run_pending(ray, config, out_dir, pending, num_workers, address, progress,
                  worker_options) -> list[WorkerTimes]:
     """Compute the pending chunks on actors; the driver records each in the manifest."""
-    import jax
     from tqdm.auto import tqdm
 
     from jaxslam.study_store import record_files
@@ -148,8 +158,7 @@ def _run_pending(ray, config, out_dir, pending, num_workers, address, progress,
             if started_ray:
                 ray.init(address=address)
             actor = ray.remote(**(worker_options or {"num_cpus": 1}))(StudyWorker)
-            settings = {name: jax.config.read(name) for name in MIRRORED_JAX_SETTINGS}
-            workers = [actor.remote(config, str(out_dir), settings)
+            workers = [actor.remote(config, str(out_dir), mirrored_jax_settings())
                        for _ in range(min(num_workers, len(pending)))]
             bar = tqdm(total=len(pending), desc=f"study {config.name} (ray)", unit="chunk",
                        disable=not progress)

@@ -42,6 +42,18 @@ def test_bad_worker_count(tmp_path, num_workers):
     assert not (tmp_path / "out").exists()
 
 
+def test_mirrored_settings_are_this_process_values():
+    """What each actor is given: this process's x64 and optimisation switches (conftest sets
+    both; see OPTIMISATION_TURNED_DOWN), read without Ray."""
+    import jax
+
+    settings = ray_backend.mirrored_jax_settings()
+    assert settings == {"jax_enable_x64": bool(jax.config.read("jax_enable_x64")),
+                        "jax_disable_most_optimizations":
+                            bool(jax.config.read("jax_disable_most_optimizations"))}
+    assert settings["jax_enable_x64"] is True  # conftest's setting, seen by the helper
+
+
 def assert_same_results(out_a, out_b):
     """Bit-identical rows (the wall-clock rate aside) and per-step error traces."""
     table_a, table_b = studies.load_results(out_a), studies.load_results(out_b)
@@ -99,6 +111,7 @@ def test_ray_matches_local_and_resumes_across_backends(local_ray, tmp_path):
     assert stamps(mixed, "*000000-000002*") == kept
     assert_same_results(mixed, tmp_path / "local")
     before = stamps(tmp_path / "ray", "chunk-*")
+    assert len(before) == 2
     again = studies.run_study(config, tmp_path / "ray", progress=False)
     assert again.filter_seconds == 0.0 and stamps(tmp_path / "ray", "chunk-*") == before
 

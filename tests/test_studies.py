@@ -510,14 +510,10 @@ def child_command(tmp_path, config, out, cache, chunk_delay=0.0):
     script = tmp_path / "child.py"
     script.write_text(_CHILD)
     args = dict(config=studies.study_config_to_dict(config), out=str(out), cache=str(cache),
-                chunk_delay=chunk_delay, jax=child_jax_settings())
+                chunk_delay=chunk_delay,
+                # conftest's x64 and turned-down optimisation: the child compiles the same
+                jax=ray_backend.mirrored_jax_settings())
     return [PYTHON, str(script), json.dumps(args)]
-
-
-def child_jax_settings() -> dict:
-    """This process's JAX settings that change the numbers (x64, XLA's optimisation, turned
-    down by conftest: other rounding), for a child to compile the same programs."""
-    return {name: bool(jax.config.read(name)) for name in ray_backend.MIRRORED_JAX_SETTINGS}
 
 
 def child_env(**extra):
