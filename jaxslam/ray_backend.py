@@ -8,7 +8,7 @@ writes its own chunk files with ``studies.write_chunk`` into the shared output f
 driver, which holds the folder's lock, records each in the manifest): the same
 names and the same atomic writes as the local backend, so a study started on one backend
 resumes on the other. Run i depends only on ``fold_in(PRNGKey(seed), i)``, never on which
-actor ran it, and each actor takes the driver's ``MIRRORED_JAX_SETTINGS``, so on hosts of
+actor ran it, and each actor takes the driver's ``study_store.NUMERIC_JAX_SETTINGS``, so on hosts of
 the driver's CPU type the results equal the local backend's bit for bit.
 
 On several hosts ``out_dir`` must be a folder every host sees under the same path (NFS, a
@@ -20,18 +20,8 @@ import pathlib
 import time
 from typing import NamedTuple
 
-# JAX settings a user (or this library's tests) may change that alter a program's numbers:
-# precision, and XLA's optimisation (other rounding). An actor, a fresh process that starts
-# with JAX's defaults, takes the driver's. Others (the PRNG implementation, matmul precision,
-# XLA_FLAGS) are not passed on: keep them at their defaults, or set them on every host.
-MIRRORED_JAX_SETTINGS = ("jax_enable_x64", "jax_disable_most_optimizations")
+from jaxslam.study_store import NUMERIC_JAX_SETTINGS, numeric_jax_settings
 
-
-def mirrored_jax_settings() -> dict:
-    """This process's values of ``MIRRORED_JAX_SETTINGS``: name -> bool."""
-    import jax
-
-    return {name: bool(jax.config.read(name)) for name in MIRRORED_JAX_SETTINGS}
 RAY_MISSING = ("the Ray backend needs the optional 'ray' extra, which is not installed: "
                "pip install 'jaxslam[ray]'")
 
@@ -56,7 +46,7 @@ class WorkerTimes(NamedTuple):
 class StudyWorker:
     """One actor's state: a chunk runner built (and compiled) once, reused for every chunk.
 
-    ``jax_settings`` holds the driver's values of ``MIRRORED_JAX_SETTINGS`` (precision and
+    ``jax_settings`` holds the driver's values of ``NUMERIC_JAX_SETTINGS`` (precision and
     XLA's optimisation, which changes rounding), so an actor compiles the same programs as
     the local backend would (a fresh worker process starts with JAX's defaults).
     Plain Python: ``run_study_ray`` wraps it with ``ray.remote``; in-process it sets those
@@ -66,7 +56,7 @@ class StudyWorker:
     def __init__(self, config, out_dir: str, jax_settings: dict):
         import jax
 
-        for name in MIRRORED_JAX_SETTINGS:
+        for name in NUMERIC_JAX_SETTINGS:
             jax.config.update(name, bool(jax_settings[name]))
         from jaxslam import studies
 
@@ -158,7 +148,7 @@ def _run_pending(ray, config, out_dir, pending, num_workers, address, progress,
             if started_ray:
                 ray.init(address=address)
             actor = ray.remote(**(worker_options or {"num_cpus": 1}))(StudyWorker)
-            workers = [actor.remote(config, str(out_dir), mirrored_jax_settings())
+            workers = [actor.remote(config, str(out_dir), numeric_jax_settings())
                        for _ in range(min(num_workers, len(pending)))]
             bar = tqdm(total=len(pending), desc=f"study {config.name} (ray)", unit="chunk",
                        disable=not progress)

@@ -4,7 +4,10 @@ Layout of ``out_dir``::
 
   study.toml        the resolved study config; a resumed study must match it (``num_runs``
                     may grow and ``chunk_size`` may change: results do not depend on them)
-  provenance.toml   package version, git revision, jax version, devices, start time
+  provenance.toml   package version, git revision, jax version, backend, devices, the JAX
+                    settings that change the numbers (``NUMERIC_JAX_SETTINGS``), start time;
+                    resuming finished chunks under another jax version, backend or setting
+                    warns (the new chunks may differ in their last bits)
   manifest.json     SHA-256 of every finished chunk, traces file and example_run.npz
   study.lock        held (``flock``) by the one process computing the study
   runs/chunk-AAAAAA-BBBBBB.parquet    one row per (run, condition) of runs [A, B); the
@@ -51,6 +54,14 @@ LOCK = "study.lock"
 KNOWN_FILES = {"study.toml", "provenance.toml", "summary.md", "summary.json",
                "example_run.npz", MANIFEST, LOCK, "metrics.json"}
 KNOWN_DIRS = {RUNS_DIR, TRACES_DIR, DAMAGED_DIR}
+# JAX settings a user (or this library's tests) may change that alter a program's numbers:
+# precision, and XLA's optimisation (other rounding). Recorded in provenance.toml; a Ray actor,
+# a fresh process that starts with JAX's defaults, takes the driver's. Others (the PRNG
+# implementation, matmul precision, XLA_FLAGS) are not recorded or passed on: keep them at
+# their defaults, or set them alike on every host and session.
+NUMERIC_JAX_SETTINGS = ("jax_enable_x64", "jax_disable_most_optimizations")
+# provenance.toml keys whose change between two sessions of one study changes its numbers.
+NUMERIC_PROVENANCE = ("jax_version", "backend") + NUMERIC_JAX_SETTINGS
 # May change between invocations of one study: the results do not depend on them.
 RESUMABLE_KEYS = ("num_runs", "chunk_size")
 _EXPORT_DIR = re.compile(r"^run-\d+-condition-\d+$")  # ``jaxslam export --run I --condition C``
@@ -286,7 +297,9 @@ def prepare_out_dir(resolved: dict, out_dir) -> None:
     for folder in (out_dir, out_dir / RUNS_DIR, out_dir / TRACES_DIR):
         for stale in folder.glob(".tmp-*"):
             stale.unlink()  # a half-written file of an interrupted run (we hold the lock)
-    atomic_write(out_dir / "provenance.toml", lambda p: p.write_text(tomli_w.dumps(provenance())))
+    record = provenance()
+    _warn_if_numerics_changed(out_dir, record)
+    atomic_write(out_dir / "provenance.toml", lambda p: p.write_text(tomli_w.dumps(record)))
 
 
 def _refusal(out_dir: pathlib.Path, differences: list[str]) -> str:
@@ -313,13 +326,44 @@ def _git_revision() -> str:
         return "unknown"
 
 
+def numeric_jax_settings() -> dict:
+    """This process's values of ``NUMERIC_JAX_SETTINGS``: name -> bool."""
+    return {name: bool(jax.config.read(name)) for name in NUMERIC_JAX_SETTINGS}
+
+
 def provenance() -> dict:
     from jaxslam import __version__
 
     return dict(jaxslam_version=__version__, git_revision=_git_revision(),
                 jax_version=jax.__version__, backend=jax.default_backend(),
-                devices=[str(d) for d in jax.devices()],
+                devices=[str(d) for d in jax.devices()], **numeric_jax_settings(),
                 started=datetime.datetime.now(datetime.timezone.utc).isoformat())
+
+
+def numeric_changes(old: dict, new: dict) -> list[str]:
+    """"key: X then, Y now" for each ``NUMERIC_PROVENANCE`` key recorded in both that differs
+    (a folder written before a key was recorded is not compared on it)."""
+    return [f"{key}: {old[key]!r} then, {new[key]!r} now" for key in NUMERIC_PROVENANCE
+            if key in old and key in new and old[key] != new[key]]
+
+
+def _warn_if_numerics_changed(out_dir: pathlib.Path, new: dict) -> None:
+    """Warn when finished chunks were computed under another jax version, backend or
+    numeric setting than this session's (the chunks computed now may then differ in their
+    last bits from an uninterrupted study's). Silent for a new folder or an unreadable
+    provenance.toml (it is rewritten)."""
+    if not any((out_dir / RUNS_DIR).glob("chunk-*.parquet")):
+        return
+    try:
+        old = tomllib.loads((out_dir / "provenance.toml").read_text())
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
+        return
+    changes = numeric_changes(old, new)
+    if changes:
+        warnings.warn(f"{out_dir}: the study's last session ran under other JAX numerics "
+                      f"({'; '.join(changes)}); the chunks computed now may differ in their "
+                      f"last bits from an uninterrupted study's (README, What is guaranteed)",
+                      UserWarning, stacklevel=3)
 
 
 def foreign_files(out_dir) -> list[str]:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import tomli_w
 
-from jaxslam import ray_backend, studies
+from jaxslam import ray_backend, studies, study_store
 from test_studies import read_traces  # shared helper, as test_proposal uses test_filter
 
 HAVE_RAY = importlib.util.find_spec("ray") is not None
@@ -42,12 +42,12 @@ def test_bad_worker_count(tmp_path, num_workers):
     assert not (tmp_path / "out").exists()
 
 
-def test_mirrored_settings_are_this_process_values():
-    """What each actor is given: this process's x64 and optimisation switches (conftest sets
-    both; see OPTIMISATION_TURNED_DOWN), read without Ray."""
+def test_numeric_settings_are_this_process_values():
+    """What each actor is given (and provenance.toml records): this process's x64 and
+    optimisation switches, which conftest sets, read without Ray."""
     import jax
 
-    settings = ray_backend.mirrored_jax_settings()
+    settings = study_store.numeric_jax_settings()
     assert settings == {"jax_enable_x64": bool(jax.config.read("jax_enable_x64")),
                         "jax_disable_most_optimizations":
                             bool(jax.config.read("jax_disable_most_optimizations"))}

@@ -25,7 +25,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from jaxslam import ray_backend, studies, study_store
+from jaxslam import studies, study_store
 from jaxslam.types import Params
 
 PYTHON = sys.executable
@@ -250,6 +250,29 @@ def test_rerun_computes_nothing_and_gives_the_same_table(study_3, tmp_path):
     assert file_stamps(out, "chunk-*") | file_stamps(out, "traces-*") == before
     assert again.compile_seconds == again.filter_seconds == again.simulator_seconds == 0.0
     assert again.table.equals(result.table)
+
+
+@pytest.mark.parametrize("key, then", [("jax_disable_most_optimizations", "flipped"),
+                                       ("jax_version", "0.0.1")])
+def test_resume_under_other_jax_numerics_warns(study_3, tmp_path, key, then):
+    """provenance.toml records the jax version and the settings that change the numbers; a
+    session that resumes finished chunks under another warns, naming it and both values (the
+    chunks computed then may differ in their last bits), and records the new value. The
+    finished results are kept. (An unchanged resume warns about nothing: run_quietly above.)"""
+    import tomli_w
+
+    config, source, result = study_3
+    out = copy_study(source, tmp_path / "out")
+    path = out / "provenance.toml"
+    record = tomllib.loads(path.read_text())
+    now = record[key]
+    assert record["jax_enable_x64"] is True  # conftest's setting, recorded
+    record[key] = (not now) if then == "flipped" else then
+    path.write_text(tomli_w.dumps(record))
+    with pytest.warns(UserWarning, match=f"{key}: {record[key]!r} then, {now!r} now"):
+        again = studies.run_study(config, out, progress=False)
+    assert again.table.equals(result.table) and again.filter_seconds == 0.0
+    assert tomllib.loads(path.read_text())[key] == now
 
 
 def test_missing_chunk_is_recomputed_alone(study_3, tmp_path):
@@ -512,7 +535,7 @@ def child_command(tmp_path, config, out, cache, chunk_delay=0.0):
     args = dict(config=studies.study_config_to_dict(config), out=str(out), cache=str(cache),
                 chunk_delay=chunk_delay,
                 # conftest's x64 and turned-down optimisation: the child compiles the same
-                jax=ray_backend.mirrored_jax_settings())
+                jax=study_store.numeric_jax_settings())
     return [PYTHON, str(script), json.dumps(args)]
 
 

@@ -24,7 +24,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxslam import ray_backend, studies
+from jaxslam import studies, study_store
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
 TIMING_COLUMNS = ("update_rate_hz",)
@@ -199,7 +199,7 @@ def test_two_devices_are_bit_identical(reference, tmp_path, run_width):
     script.write_text(_CHILD)
     payload = json.dumps(dict(config=studies.study_config_to_dict(config),
                               out=str(tmp_path / "two"),
-                              jax=ray_backend.mirrored_jax_settings()))
+                              jax=study_store.numeric_jax_settings()))
     env = dict(os.environ, PYTHONPATH=str(REPO),
                XLA_FLAGS="--xla_force_host_platform_device_count=2")
     child = subprocess.run([sys.executable, str(script), payload], capture_output=True,
