@@ -701,3 +701,20 @@ def test_per_run_worlds_accept_lidar_and_refuse_unknown_worlds():
     assert config.scenario.world == "per_run"
     with pytest.raises(ValueError, match="'shared', 'per_run'"):
         tiny_config("scenario.world='mine'")
+
+
+def test_compiled_program_key_follows_the_numeric_jax_settings():
+    """A program compiled under one optimisation setting is not reused under the other (the
+    study's numbers, and provenance.toml, follow the setting in force)."""
+    from jaxslam.studies import runner
+
+    config, args = tiny_config(), (np.zeros((2, 3), np.float32),)
+    key = runner._program_key(config, "cpu", args)
+    name = "jax_disable_most_optimizations"
+    before = jax.config.read(name)
+    try:
+        jax.config.update(name, not before)
+        other = runner._program_key(config, "cpu", args)
+    finally:
+        jax.config.update(name, before)
+    assert other != key and runner._program_key(config, "cpu", args) == key

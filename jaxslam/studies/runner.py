@@ -55,12 +55,14 @@ _MAX_COMPILED = 8
 
 def _program_key(config: StudyConfig, device, args) -> tuple:
     """What a compiled group program depends on: the config (but not the number of runs or
-    the chunk size), the device, the arguments' shapes and dtypes, and x64 mode."""
+    the chunk size), the device, the arguments' shapes and dtypes, and the JAX settings that
+    change its numbers (``study_store.NUMERIC_JAX_SETTINGS``: x64, XLA's optimisation)."""
     identity = {k: v for k, v in study_config_to_dict(config).items()
                 if k not in study_store.RESUMABLE_KEYS}
     identity = json.dumps(identity, sort_keys=True, default=repr)
     shapes = tuple((leaf.shape, str(leaf.dtype)) for leaf in jax.tree.leaves(args))
-    return identity, str(device), shapes, bool(jax.config.jax_enable_x64)
+    return (identity, str(device), shapes,
+            tuple(sorted(study_store.numeric_jax_settings().items())))
 
 
 class _ChunkRunner:
