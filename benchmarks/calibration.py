@@ -7,8 +7,8 @@ one run and the whole calibration are timed back to back in this process, and th
 calibration / run. Everything else a calibration does, compiles included, counts against it:
 a user calls ``calibrate_params`` once, in a fresh process. Logs: a held-out simulated loop
 (the ``experiments/self_calibration.py`` generator: 250 steps, 40 trees), UTIAS MRCLAM
-robot 1 (3,809 steps; ``--robots`` names others) and Victoria Park (7,230 scans; its calibration takes about 8-15
-minutes on 2 cores) when their folders are given.
+robot 1 (3,809 steps; ``--robots`` names others) and Victoria Park (7,230 scans; its
+calibration takes about 8-15 minutes on 2 cores) when their folders are given.
 
     python benchmarks/calibration.py [--particles 100] [--stages]
     python benchmarks/calibration.py --mrclam DIR     # or JAXSLAM_MRCLAM=DIR; --skip-mrclam
@@ -31,8 +31,8 @@ How to read a line:
 * The machine is shared: a ratio moves by 20-30 % from one invocation to the next. Compare
   versions in one process, back to back, and repeat.
 * The next lines: EM's log marginal likelihood and dropped births for each iteration's filter
-  run, and the likelihood's scale search (``noise_scale``): each candidate's score and dropped
-  births (nan and -1 for a candidate its walk did not run).
+  run, and the likelihood's scale search (``noise_scale.describe_search``): each candidate's
+  score (nan for one its walk did not run) and, when any run dropped births, those counts.
 * ``--stages`` adds the seconds spent in each stage, summed over the iterations and as a
   multiple of the filter run: the filter runs, tracing the best particle's history, the
   smoother (its Levenberg-Marquardt solves and the variance components inside it), the
@@ -65,6 +65,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam import self_calibration, smoothing  # noqa: E402
 from jaxslam.filter import run_filter  # noqa: E402
+from jaxslam.noise_scale import describe_search  # noqa: E402
 from jaxslam.self_calibration import calibrate_params, starting_params  # noqa: E402
 from jaxslam.smoothing import solver  # noqa: E402
 from jaxslam.types import FilterConfig  # noqa: E402
@@ -138,15 +139,7 @@ def bench(name, config, controls, obs, start, stages: bool = False, params=None)
     print(f"    log marginal likelihood per iteration {np.round(info.objective, 1).tolist()}, "
           f"births dropped {np.asarray(info.dropped_births).tolist()}")
     if info.noise_scales is not None:
-        found = info.noise_scales
-        not_run = np.any(found.motion_dropped < 0) or np.any(found.observation_dropped < 0)
-        print(f"    scale search: motion {found.motion_scales.tolist()} -> "
-              f"{np.round(found.motion_objective, 1).tolist()} (births dropped "
-              f"{found.motion_dropped.tolist()}), observation "
-              f"{found.observation_scales.tolist()} -> "
-              f"{np.round(found.observation_objective, 1).tolist()} (births dropped "
-              f"{found.observation_dropped.tolist()})"
-              + (" (nan and -1: not run)" if not_run else ""))
+        print(f"    scale search: {describe_search(info.noise_scales)}")
     if stages:
         top = sum(v for label, v in totals.items() if not label.startswith(" "))
         for _, _, label in STAGES:

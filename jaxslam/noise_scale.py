@@ -33,18 +33,17 @@ choice): at most len(motion_scales) + len(observation_scales) - 1 filter runs. S
 are not searched by default: EM's failure is the shrinking loop above.
 
 Each stage walks its grid outward from 1 (upward through the larger scales, then downward
-through the smaller ones) and, with ``stop_at_first_drop``, stops a direction at the first
-fair candidate (dropped no birth, finite score; below) that scores lower than the best fair
-one met so far on that walk; the
-candidates it did not run score NaN. For one Gaussian noise group whose std is multiplied by
-s, the expected log likelihood -n log s - Q / (2 s^2) (n residuals of summed squared whitened
-size Q at s = 1) has one maximum, at s^2 = Q / n, so a drop means the peak is passed. The
-particle filter's estimate is noisy and the walk assumes it keeps that shape; in every stage
-recorded in docs/results.md (MRCLAM robots 1 and 2, Victoria Park keys 0 and 1) the fair
-runs' scores rose to one peak and fell after it (runs whose map overflowed need not: on
-Victoria Park they did not, and they never stop the walk). A stage whose runs all overflow
-runs every candidate, as no run is fair. This saves the runs past the peak: on MRCLAM's
-motion x2, observation x1, 3 of the 6 runs.
+through the smaller ones) and, with ``stop_at_first_drop``, stops a direction at the first fair
+candidate (dropped no birth, finite score; below) that scores lower than the best fair one met
+so far on that walk; the candidates it did not run score NaN. For one Gaussian noise group
+whose std is multiplied by s, the expected log likelihood -n log s - Q / (2 s^2) (n residuals
+of summed squared whitened size Q at s = 1) has one maximum, at s^2 = Q / n, so a drop means
+the peak is passed. The particle filter's estimate is noisy and the walk assumes it keeps that
+shape; in every stage recorded in docs/results.md (MRCLAM robots 1 and 2, Victoria Park keys 0
+and 1) the fair runs' scores rose to one peak and fell after it (runs whose map overflowed need
+not: on Victoria Park they did not, and they never stop the walk). A stage whose runs all
+overflow runs every candidate, as no run is fair. This saves the runs past the peak: on
+MRCLAM's motion x2, observation x1, 3 of the 6 runs.
 
 The new-landmark credit is held fixed. The filter credits an observation that no landmark
 explains with the density of a match at the gate under the observation's own noise
@@ -216,6 +215,25 @@ def walk_stage(scales, score, stop_at_first_drop: bool = True):
                 break
             best = max(best, value)
     return objective, dropped
+
+
+def describe_search(found: ScaleSearch) -> str:
+    """One line: each stage's candidates and scores, which were not run, and the births the
+    runs dropped when any did (how the choice was made: ``best_scale``)."""
+    not_run = np.any(found.motion_dropped < 0) or np.any(found.observation_dropped < 0)
+    line = (f"motion {found.motion_scales.tolist()} -> "
+            f"{np.round(found.motion_objective, 1).tolist()}, observation "
+            f"{found.observation_scales.tolist()} -> "
+            f"{np.round(found.observation_objective, 1).tolist()}")
+    if not_run:
+        line += " (nan where not run: the score had already fallen past its peak)"
+    if np.any(found.motion_dropped > 0) or np.any(found.observation_dropped > 0):
+        line += (f" (births dropped, map full: motion {found.motion_dropped.tolist()}, "
+                 f"observation {found.observation_dropped.tolist()}"
+                 + ("; -1: not run" if not_run else "")
+                 + "; only runs that dropped none compete, and a stage where every run "
+                 "dropped births keeps x1)")
+    return line
 
 
 def check_scales(name: str, scales) -> np.ndarray:

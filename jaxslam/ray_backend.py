@@ -8,8 +8,8 @@ writes its own chunk files with ``studies.write_chunk`` into the shared output f
 driver, which holds the folder's lock, records each in the manifest): the same
 names and the same atomic writes as the local backend, so a study started on one backend
 resumes on the other. Run i depends only on ``fold_in(PRNGKey(seed), i)``, never on which
-actor ran it, and each actor takes the driver's ``study_store.NUMERIC_JAX_SETTINGS``, so on hosts of
-the driver's CPU type the results equal the local backend's bit for bit.
+actor ran it, and each actor takes the driver's ``study_store.NUMERIC_JAX_SETTINGS``, so on
+hosts of the driver's CPU type the results equal the local backend's bit for bit.
 
 On several hosts ``out_dir`` must be a folder every host sees under the same path (NFS, a
 mounted bucket...); each actor also shards its chunk over its host's local devices.

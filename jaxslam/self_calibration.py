@@ -88,7 +88,7 @@ from jaxslam.filter import run_filter
 from jaxslam.landmark_merge import merge_split_landmarks, relabel
 from jaxslam.motion import control_to_odometry
 from jaxslam.noise_scale import (DEFAULT_SCALES, MOTION_FIELDS, OBSERVATION_FIELDS, ScaleSearch,
-                                 check_scales, search_noise_scales)
+                                 check_scales, describe_search, search_noise_scales)
 from jaxslam.noise_fit import (MIN_MOVES, MIN_OBSERVATIONS, MIN_SIGHTINGS, STD_FLOOR,
                                group_relative_errors, motion_noise_update,
                                observation_noise_update)
@@ -456,21 +456,8 @@ def _scale_search(config, key, params, controls, observations, start, scales, la
         motion_scales=scales if last.motion_fitted else unit,
         observation_scales=scales if last.observation_fitted else unit,
         known_objective=known_objective, known_dropped=known_dropped)
-    line = (f"likelihood over noise scales: motion {found.motion_scales.tolist()} -> "
-            f"{np.round(found.motion_objective, 1).tolist()}, observation "
-            f"{found.observation_scales.tolist()} -> "
-            f"{np.round(found.observation_objective, 1).tolist()}")
-    if np.any(found.motion_dropped < 0) or np.any(found.observation_dropped < 0):
-        line += " (nan where not run: the score had already fallen past its peak)"
-    if np.any(found.motion_dropped > 0) or np.any(found.observation_dropped > 0):
-        line += (f" (births dropped, map full: motion {found.motion_dropped.tolist()}, "
-                 f"observation {found.observation_dropped.tolist()}"
-                 + ("; -1: not run" if np.any(found.motion_dropped < 0)
-                    or np.any(found.observation_dropped < 0) else "")
-                 + "; only runs that dropped none compete, and a stage where every run "
-                 "dropped births keeps x1)")
     if progress is not None:
-        progress(f"calibration: {line}")
+        progress(f"calibration: likelihood over noise scales: {describe_search(found)}")
     if found.motion_scale == 1.0 and found.observation_scale == 1.0:
         return params, found, "; the likelihood kept EM's noise (noise scales x1)"
     return params, found, (f"; noise scaled by the filter's likelihood: motion "

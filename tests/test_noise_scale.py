@@ -313,6 +313,20 @@ def test_search_passes_the_stop_through_and_its_verdict_says_what_was_not_run(mo
     assert "nan where not run" in lines[0] and "births dropped" not in lines[0]
 
 
+def test_describe_search_names_runs_not_made_and_births_dropped():
+    found = ns.ScaleSearch(2.0, 1.0, np.array([1.0, 2.0, 4.0]), np.array([3.0, 5.0, np.nan]),
+                           np.array([1.0, 2.0]), np.array([5.0, 4.0]), np.array([0, 0, -1]),
+                           np.array([0, 0]))
+    line = ns.describe_search(found)
+    assert line.startswith("motion [1.0, 2.0, 4.0] -> [3.0, 5.0, nan], observation [1.0, 2.0]")
+    assert "nan where not run" in line and "births dropped" not in line
+    full = ns.describe_search(found._replace(observation_dropped=np.array([0, 12])))
+    assert "births dropped, map full: motion [0, 0, -1], observation [0, 12]; -1: not run" in full
+    plain = ns.describe_search(found._replace(motion_objective=np.array([3.0, 5.0, 4.0]),
+                                              motion_dropped=np.array([0, 0, 0])))
+    assert "not run" not in plain and "births dropped" not in plain
+
+
 def test_run_score_counts_the_births_a_full_map_dropped():
     """A map of 6 slots for a loop through 30 trees: births are dropped, and ``run_score``
     reports the trace's sums; with 48 slots none is dropped."""

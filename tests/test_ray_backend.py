@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import tomli_w
 
-from jaxslam import ray_backend, studies, study_store
+from jaxslam import ray_backend, studies
 from test_studies import read_traces  # shared helper, as test_proposal uses test_filter
 
 HAVE_RAY = importlib.util.find_spec("ray") is not None
@@ -40,18 +40,6 @@ def test_bad_worker_count(tmp_path, num_workers):
     with pytest.raises(ValueError, match="num_workers.*positive integer"):
         ray_backend.run_study_ray(config, tmp_path / "out", num_workers=num_workers)
     assert not (tmp_path / "out").exists()
-
-
-def test_numeric_settings_are_this_process_values():
-    """What each actor is given (and provenance.toml records): this process's x64 and
-    optimisation switches, which conftest sets, read without Ray."""
-    import jax
-
-    settings = study_store.numeric_jax_settings()
-    assert settings == {"jax_enable_x64": bool(jax.config.read("jax_enable_x64")),
-                        "jax_disable_most_optimizations":
-                            bool(jax.config.read("jax_disable_most_optimizations"))}
-    assert settings["jax_enable_x64"] is True  # conftest's setting, seen by the helper
 
 
 def assert_same_results(out_a, out_b):
