@@ -331,16 +331,23 @@ def group_relative_errors(res: Residuals, used: np.ndarray, motion: bool,
     return out
 
 
-def radius_noise_from_history(ids, radius, valid, min_sightings: int = 3) -> tuple[float, int]:
+def radius_noise_from_history(ids, radius, valid, min_sightings: int = 3,
+                              quantile: float = TAIL_QUANTILE) -> tuple[float, int]:
     """Std [m] of one detected trunk radius from the scatter within each tree, no ground truth.
 
     ids: (T, K) landmark identity of each observation along one particle's history
     (``lineage.landmark_identities``; -1: none); radius: (T, K) detected radii; valid:
     (T, K). Over the landmarks with at least ``min_sightings`` sightings, the deviations
-    e = r - median_j(r) of each radius from its tree's median are pooled and
-    std = 1.4826 median |e| (the median absolute deviation: robust to the few wrong
-    associations, which would widen a plain std). Returns (std, observations used);
-    (nan, 0) when no landmark was seen often enough.
+    e = r - median_j(r) of each radius from its tree's median are pooled. The core std is
+    their median absolute deviation, s = 1.4826 median |e|, and it is then widened by
+    ``tail_factor`` until the ``quantile`` share of the deviations lies within the filter's
+    interval of that share: std = s sqrt(tail_factor(e, s)) = max(s, q_quantile(|e|) / z),
+    z = 1.96 for 95 %. The same rule as the motion and sensor noise (``tail_factor``): a
+    trunk's detected radius is heavy-tailed (a partly occluded or grazed trunk gives a short
+    chord), and a std fitted to the core alone makes the association's radius term reject
+    those sightings, so the tree is split into a new landmark. For Gaussian scatter the two
+    agree up to sampling noise. Returns (std, observations used); (nan, 0) when no landmark
+    was seen often enough.
     """
     ids = np.where(np.asarray(valid, bool), np.asarray(ids), -1).ravel()
     radius = np.asarray(radius, np.float64).ravel()
@@ -355,4 +362,7 @@ def radius_noise_from_history(ids, radius, valid, min_sightings: int = 3) -> tup
     medians = np.array([np.median(radius[inverse == j]) if counts[j] >= min_sightings
                         else np.nan for j in range(labels.size)])
     deviation = radius[often] - medians[inverse[often]]
-    return float(calibrate.MAD_TO_STD * np.median(np.abs(deviation))), int(often.sum())
+    core = calibrate.MAD_TO_STD * np.median(np.abs(deviation))
+    if not core > 0.0:  # a constant radius: nothing to widen
+        return float(core), int(often.sum())
+    return float(core * np.sqrt(tail_factor(deviation, core, quantile))), int(often.sum())
