@@ -44,6 +44,7 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxslam import ekf, landmarks, step_propose, step_update
 from jaxslam.geometry import wrap_angle
@@ -317,7 +318,8 @@ def _check_lineage_slots(config: FilterConfig) -> None:
 
 
 def scan_filter(config: FilterConfig, key, state: FilterState, params: Params, controls,
-                observations: Observations, record_lineage: bool = False):
+                observations: Observations, record_lineage: bool = False,
+                stop_at_dropped_birth=None):
     """``lax.scan`` of ``step`` over T steps (traceable; vmap it over runs or params).
 
     Step t uses key ``fold_in(key, t)``. Returns (final state, ``Trace``); with
@@ -325,29 +327,57 @@ def scan_filter(config: FilterConfig, key, state: FilterState, params: Params, c
     (``Lineage``, for ``smoothing.smooth_lineage``). ``controls`` (T, 3) are not checked: a
     row with a NaN or inf is masked (poses kept, module docstring) and flagged in
     ``trace.invalid_control`` (T,).
+
+    ``stop_at_dropped_birth``: None (default) runs every step. A () bool (dynamic: one
+    compiled program serves both values) that is True holds the state after the first step
+    whose map had no free slot for a birth (``trace.num_dropped_births`` > 0): the steps
+    after it are skipped (``lax.cond``: on a CPU or GPU only the taken branch runs, so they
+    cost next to nothing unless the scan is vmapped, which turns the cond into a select of
+    both branches), their trace rows are zeros, and the final state is the state after that
+    step. ``noise_scale.run_score`` uses it: a run whose map overflowed cannot be chosen, so
+    the rest of it need not be run.
     """
     step = make_filter(config).step
     if record_lineage:
         _check_lineage_slots(config)
 
-    def body(carry: FilterState, inputs):
+    def advance(carry: FilterState, inputs):
         t, control, obs = inputs
         new_state, info = step(jax.random.fold_in(key, t), carry, params, control, obs)
         return new_state, _trace_row(new_state, info, record_lineage)
 
     steps = jnp.arange(controls.shape[0], dtype=jnp.int32)
-    return jax.lax.scan(body, state, (steps, controls, observations))
+    if stop_at_dropped_birth is None:
+        return jax.lax.scan(advance, state, (steps, controls, observations))
+    stop = jnp.asarray(stop_at_dropped_birth, bool)
+    if stop.shape != ():
+        raise ValueError(f"stop_at_dropped_birth must be a scalar bool; got shape {stop.shape}")
+    first = jax.tree.map(lambda leaf: leaf[0], (steps, controls, observations))
+    blank = jax.tree.map(lambda shape: jnp.zeros(shape.shape, shape.dtype),
+                         jax.eval_shape(advance, state, first)[1])
+
+    def body(carry, inputs):
+        current, stopped = carry
+        new_state, row = jax.lax.cond(stopped, lambda c, _: (c, blank), advance, current,
+                                      inputs)
+        return (new_state, stopped | (stop & (row.num_dropped_births > 0))), row
+
+    (final, _), trace = jax.lax.scan(body, (state, jnp.asarray(False)),
+                                     (steps, controls, observations))
+    return final, trace
 
 
 @functools.partial(jax.jit, static_argnums=(0, 6))
 def _run_filter_jit(config, key, params, controls, observations, initial_pose,
-                    record_lineage=False):
+                    record_lineage=False, stop_at_dropped_birth=False):
     state = make_filter(config).init(initial_pose, dtype=controls.dtype)
-    return scan_filter(config, key, state, params, controls, observations, record_lineage)
+    return scan_filter(config, key, state, params, controls, observations, record_lineage,
+                       stop_at_dropped_birth)
 
 
 def run_filter(config: FilterConfig | Filter, key, params: Params, controls,
-               observations: Observations, initial_pose=None, record_lineage: bool = False):
+               observations: Observations, initial_pose=None, record_lineage: bool = False,
+               stop_at_dropped_birth: bool = False):
     """Run a whole sequence in one compiled call.
 
     Args:
@@ -359,6 +389,10 @@ def run_filter(config: FilterConfig | Filter, key, params: Params, controls,
       initial_pose: (3,) start pose of every particle (default origin).
       record_lineage: also record every particle's ancestry and association in
         ``trace.lineage`` (4 T P K + 16 T P bytes), for ``smoothing.smooth_lineage``.
+      stop_at_dropped_birth: skip the steps after the first one that dropped a birth for
+        want of a free slot (``scan_filter``): their trace rows are zeros, and the final
+        state is the state after that step. A dynamic flag: both values share one compiled
+        program.
     Returns:
       (final ``FilterState``, ``Trace`` with leading axis T).
     Raises:
@@ -383,5 +417,9 @@ def run_filter(config: FilterConfig | Filter, key, params: Params, controls,
             f"got {observations.z.shape}")
     if initial_pose is None:
         initial_pose = jnp.zeros(3, controls.dtype)
+    if not isinstance(stop_at_dropped_birth, (bool, np.bool_)):
+        raise ValueError("stop_at_dropped_birth must be True or False; got "
+                         f"{stop_at_dropped_birth!r}")
     return _run_filter_jit(config, key, params, controls, observations,
-                           jnp.asarray(initial_pose, controls.dtype), bool(record_lineage))
+                           jnp.asarray(initial_pose, controls.dtype), bool(record_lineage),
+                           jnp.asarray(bool(stop_at_dropped_birth)))

@@ -72,6 +72,10 @@ outscored x8, the only one that did not (log likelihood +70.8 k, +50.4 k and +46
 EM's own estimate stands (the run's warnings then say the map was full). That last rule was
 settled after seeing, on Victoria Park, the GPS error of the motion scale it keeps (x1)
 against the one the biased likelihood ranked first (x8): in-sample there (docs/results.md).
+Since an overflowed run cannot be chosen, a candidate's run stops after its first step that
+drops a birth (``run_score``; ``filter.scan_filter``'s ``stop_at_dropped_birth``): the rest of
+it could not change the choice, so only the time changes (on Victoria Park the candidates
+that overflowed dropped their first birth 57-67 % into the log).
 
 Shapes: S candidates, T steps, K observations a step.
 """
@@ -99,7 +103,8 @@ class ScaleSearch(NamedTuple):
     stage (at the chosen s_m). motion_dropped / observation_dropped: (S_m,) / (S_o,) the
     births each candidate's run dropped for want of a free slot (summed over particles and
     steps; ``best_scale``). A candidate the walk did not run (``walk_stage``) has objective
-    NaN and dropped -1.
+    NaN and dropped -1; one stopped at its first dropped birth (``run_score``) has objective
+    NaN and the births dropped at that step (> 0).
     """
 
     motion_scale: float
@@ -144,6 +149,8 @@ class RunScore(NamedTuple):
     """A candidate's filter run: log_likelihood, the log marginal likelihood estimate
     (``Trace.log_evidence`` summed); dropped_births, the births it dropped because the map
     was full (``Trace.num_dropped_births`` summed over steps; each is summed over particles).
+    A run stopped at its first dropped birth (``run_score``) has log_likelihood NaN (its
+    partial sum would compare with nothing) and the births dropped at that step.
     """
 
     log_likelihood: float
@@ -151,26 +158,38 @@ class RunScore(NamedTuple):
 
 
 def run_score(config: FilterConfig, key, params: Params, controls,
-              observations: Observations, initial_pose=None) -> RunScore:
+              observations: Observations, initial_pose=None,
+              stop_at_dropped_birth: bool = True) -> RunScore:
     """The filter's log marginal likelihood of the log under ``params`` with ``key``, and
     the births its run dropped (``RunScore``).
 
     One ``run_filter(..., record_lineage=True)`` call: the static arguments of the EM runs in
-    ``calibrate_params``, so the search reuses their compiled filter (``Params`` are dynamic)
-    instead of compiling a vmapped one. On the CPU that is the cheaper way: candidates run
-    back to back cost what their runs cost, while one vmapped call over S candidates costs
-    about S / 2 runs plus a compile of its own (a 250-step log: 0.65 s a run, ~10 s to compile).
+    ``calibrate_params``, so the search reuses their compiled filter (``Params`` and the stop
+    flag are dynamic) instead of compiling a vmapped one. On the CPU that is the cheaper
+    way: candidates run back to back cost what their runs cost, while one vmapped call over S
+    candidates costs about S / 2 runs plus a compile of its own (a 250-step log: 0.65 s a
+    run, ~10 s to compile).
+
+    With ``stop_at_dropped_birth`` (default) the run stops after the first step whose map had
+    no free slot for a birth: such a run is not a fair candidate (module docstring) whatever
+    its remaining steps would score, so they are not run. The choice is the same as with the
+    whole run; only the time differs (Victoria Park's overflowing candidates stopped 57-67 %
+    into the log).
     """
     _, trace = run_filter(config, key, params, controls, observations, initial_pose,
-                          record_lineage=True)
-    return RunScore(float(np.sum(np.asarray(trace.log_evidence))),  # as calibrate_params sums
-                    int(np.sum(np.asarray(trace.num_dropped_births))))
+                          record_lineage=True, stop_at_dropped_birth=stop_at_dropped_birth)
+    dropped = int(np.sum(np.asarray(trace.num_dropped_births)))
+    log_likelihood = float(np.sum(np.asarray(trace.log_evidence)))  # as calibrate_params sums
+    if stop_at_dropped_birth and dropped > 0:
+        log_likelihood = float("nan")
+    return RunScore(log_likelihood, dropped)
 
 
 def log_likelihood(config: FilterConfig, key, params: Params, controls,
                    observations: Observations, initial_pose=None) -> float:
-    """``run_score``'s log marginal likelihood alone."""
-    return run_score(config, key, params, controls, observations, initial_pose).log_likelihood
+    """``run_score``'s log marginal likelihood alone, of the whole run (never stopped)."""
+    return run_score(config, key, params, controls, observations, initial_pose,
+                     stop_at_dropped_birth=False).log_likelihood
 
 
 def best_scale(scales, objective, dropped=None) -> float:
@@ -220,13 +239,19 @@ def walk_stage(scales, score, stop_at_first_drop: bool = True):
 def describe_search(found: ScaleSearch) -> str:
     """One line: each stage's candidates and scores, which were not run, and the births the
     runs dropped when any did (how the choice was made: ``best_scale``)."""
-    not_run = np.any(found.motion_dropped < 0) or np.any(found.observation_dropped < 0)
+    dropped = np.concatenate([found.motion_dropped, found.observation_dropped])
+    objective = np.concatenate([found.motion_objective, found.observation_objective])
+    not_run = np.any(dropped < 0)
+    stopped = np.any((dropped > 0) & np.isnan(objective))
     line = (f"motion {found.motion_scales.tolist()} -> "
             f"{np.round(found.motion_objective, 1).tolist()}, observation "
             f"{found.observation_scales.tolist()} -> "
             f"{np.round(found.observation_objective, 1).tolist()}")
     if not_run:
         line += " (nan where not run: the score had already fallen past its peak)"
+    if stopped:
+        line += (" (nan where a run stopped at its first dropped birth: the map was full, so "
+                 "it could not be chosen)")
     if np.any(found.motion_dropped > 0) or np.any(found.observation_dropped > 0):
         line += (f" (births dropped, map full: motion {found.motion_dropped.tolist()}, "
                  f"observation {found.observation_dropped.tolist()}"

@@ -325,23 +325,99 @@ def test_describe_search_names_runs_not_made_and_births_dropped():
     plain = ns.describe_search(found._replace(motion_objective=np.array([3.0, 5.0, 4.0]),
                                               motion_dropped=np.array([0, 0, 0])))
     assert "not run" not in plain and "births dropped" not in plain
+    assert "stopped" not in line + full + plain
+    stopped = ns.describe_search(found._replace(observation_objective=np.array([5.0, np.nan]),
+                                                observation_dropped=np.array([0, 3])))
+    assert "nan where a run stopped at its first dropped birth" in stopped
+    assert "observation [0, 3]" in stopped
 
 
 def test_run_score_counts_the_births_a_full_map_dropped():
-    """A map of 6 slots for a loop through 30 trees: births are dropped, and ``run_score``
-    reports the trace's sums; with 48 slots none is dropped."""
+    """A map of 6 slots for a loop through 30 trees: births are dropped. The whole run
+    (``stop_at_dropped_birth=False``) reports the trace's sums; the default run stops at the
+    first step that dropped one and reports NaN and that step's births; with 48 slots none is
+    dropped and both give the whole run's score."""
     controls, obs, poses = _log()
     small = FilterConfig(num_particles=16, max_landmarks=6, max_obs=10)
     key = jax.random.PRNGKey(0)
-    score = ns.run_score(small, key, _true_params(), controls, obs, poses[0])
+    whole = ns.run_score(small, key, _true_params(), controls, obs, poses[0],
+                         stop_at_dropped_birth=False)
     _, trace = run_filter(small, key, _true_params(), controls, obs, poses[0])
-    assert score.dropped_births == int(np.sum(np.asarray(trace.num_dropped_births))) > 0
+    dropped = np.asarray(trace.num_dropped_births)
+    assert whole.dropped_births == int(np.sum(dropped)) > 0
     # The same compiled computation up to record_lineage (which only adds outputs): equal to
     # float32 rounding of the sum (1e-6 relative).
-    np.testing.assert_allclose(score.log_likelihood,
+    np.testing.assert_allclose(whole.log_likelihood,
                                float(np.sum(np.asarray(trace.log_evidence))), rtol=1e-6)
-    assert ns.run_score(CONFIG, key, _true_params(), controls, obs,
-                        poses[0]).dropped_births == 0
+    stopped = ns.run_score(small, key, _true_params(), controls, obs, poses[0])
+    assert np.isnan(stopped.log_likelihood)
+    assert stopped.dropped_births == int(dropped[np.flatnonzero(dropped)[0]]) > 0
+    fits = ns.run_score(CONFIG, key, _true_params(), controls, obs, poses[0])
+    assert fits.dropped_births == 0 and np.isfinite(fits.log_likelihood)
+    assert fits == ns.run_score(CONFIG, key, _true_params(), controls, obs, poses[0],
+                                stop_at_dropped_birth=False)
+
+
+def _rows(trace, steps):
+    """The trace's leaves at ``steps`` (a slice), lineage included."""
+    return jax.tree.map(lambda leaf: np.asarray(leaf)[steps], trace)
+
+
+def test_run_filter_stops_at_the_first_dropped_birth():
+    """``stop_at_dropped_birth``: the rows up to and including the first step that dropped a
+    birth are bit-identical to the whole run's (one compiled program, same key), every later
+    row is zeros, and the final state is the whole run's state after that step (the run on
+    that prefix, compiled for its own length: the same step, so bit-identical on this CPU).
+    A run that never drops a birth is the same with the flag on or off, and equal to
+    ``scan_filter`` without the flag (no cond). Bad flags are refused."""
+    from jaxslam.filter import make_filter, scan_filter
+
+    controls, obs, poses = _log()
+    small = FilterConfig(num_particles=16, max_landmarks=6, max_obs=10)
+    key, params = jax.random.PRNGKey(0), _true_params()
+    final_all, whole = run_filter(small, key, params, controls, obs, poses[0],
+                                  record_lineage=True)
+    final_stop, stopped = run_filter(small, key, params, controls, obs, poses[0],
+                                     record_lineage=True, stop_at_dropped_birth=True)
+    first = int(np.flatnonzero(np.asarray(whole.num_dropped_births))[0])
+    assert 0 < first < controls.shape[0] - 1
+    chex.assert_trees_all_equal(_rows(stopped, slice(0, first + 1)),
+                                _rows(whole, slice(0, first + 1)))
+    for leaf in jax.tree.leaves(_rows(stopped, slice(first + 1, None))):
+        assert not np.any(leaf), leaf
+    prefix = jax.tree.map(lambda a: a[:first + 1], obs)
+    final_prefix, _ = run_filter(small, key, params, controls[:first + 1], prefix, poses[0],
+                                 record_lineage=True)
+    chex.assert_trees_all_equal(final_stop, final_prefix)
+    assert not np.array_equal(np.asarray(final_all.particles.pose),
+                              np.asarray(final_stop.particles.pose))
+    # No overflow: the flag changes nothing. The cond-free scan (``stop_at_dropped_birth``
+    # None) is another compiled program: the particles' paths, ancestry and associations
+    # (the lineage) and resampling are bit-identical, and the sums over particles (weighted mean pose, ESS, evidence)
+    # agree to float32 rounding of differently fused reductions (1e-6 relative seen; 1e-5).
+    _, off = run_filter(CONFIG, key, params, controls, obs, poses[0], record_lineage=True)
+    _, on = run_filter(CONFIG, key, params, controls, obs, poses[0], record_lineage=True,
+                       stop_at_dropped_birth=True)
+    chex.assert_trees_all_equal(on, off)
+    plain = jax.jit(lambda k: scan_filter(CONFIG, k, make_filter(CONFIG).init(poses[0]),
+                                          params, controls, obs, True)[1])(key)
+    chex.assert_trees_all_equal((plain.lineage, plain.best_pose, plain.resampled),
+                                (off.lineage, off.best_pose, off.resampled))
+    chex.assert_trees_all_close(plain, off, rtol=1e-5, atol=1e-5)
+    # Under vmap the cond becomes a select of both branches: the same rows as each run alone
+    # (float32 rounding of the batched program: 1e-5).
+    keys = jax.random.split(key, 2)
+    batched = jax.jit(jax.vmap(lambda k: scan_filter(
+        small, k, make_filter(small).init(poses[0]), params, controls, obs,
+        stop_at_dropped_birth=True)[1]))(keys)
+    for run, k in enumerate(keys):
+        _, alone = run_filter(small, k, params, controls, obs, poses[0],
+                              stop_at_dropped_birth=True)
+        chex.assert_trees_all_close(jax.tree.map(lambda a, run=run: a[run], batched), alone,
+                                    rtol=1e-5, atol=1e-5)
+    for bad in (1, "yes", None, np.array([True])):
+        with pytest.raises(ValueError, match="stop_at_dropped_birth must be True or False"):
+            run_filter(small, key, params, controls, obs, poses[0], stop_at_dropped_birth=bad)
 
 
 @pytest.mark.parametrize("bad", [[], [0.0, 1.0], [1.0, np.nan], [[1.0]], [2.0, 4.0],
