@@ -32,7 +32,9 @@ How to read a line:
   versions in one process, back to back, and repeat.
 * The next lines: EM's log marginal likelihood and dropped births for each iteration's filter
   run, and the likelihood's scale search (``noise_scale.describe_search``): each candidate's
-  score (nan for one its walk did not run) and, when any run dropped births, those counts.
+  score (nan for one its walk did not run, and for one stopped at its first dropped birth)
+  and, when any run dropped births, those counts (a stopped run's: those of the step it
+  stopped at; EM's own x1 run's: its whole run's).
 * ``--stages`` adds the seconds spent in each stage, summed over the iterations and as a
   multiple of the filter run: the filter runs, tracing the best particle's history, the
   smoother (its Levenberg-Marquardt solves and the variance components inside it), the

@@ -333,9 +333,10 @@ def scan_filter(config: FilterConfig, key, state: FilterState, params: Params, c
     whose map had no free slot for a birth (``trace.num_dropped_births`` > 0): the steps
     after it are skipped (``lax.cond``: on a CPU or GPU only the taken branch runs, so they
     cost next to nothing unless the scan is vmapped, which turns the cond into a select of
-    both branches), their trace rows are zeros, and the final state is the state after that
-    step. ``noise_scale.run_score`` uses it: a run whose map overflowed cannot be chosen, so
-    the rest of it need not be run.
+    both branches), their trace rows are zeros (in a recorded lineage: each particle its own
+    ancestor, match and birth_slot -1, as for a step with no observation), and the final
+    state is the state after that step. ``noise_scale.run_score`` uses it: a run whose map
+    overflowed cannot be chosen, so the rest of it need not be run.
     """
     step = make_filter(config).step
     if record_lineage:
@@ -352,9 +353,15 @@ def scan_filter(config: FilterConfig, key, state: FilterState, params: Params, c
     stop = jnp.asarray(stop_at_dropped_birth, bool)
     if stop.shape != ():
         raise ValueError(f"stop_at_dropped_birth must be a scalar bool; got shape {stop.shape}")
-    first = jax.tree.map(lambda leaf: leaf[0], (steps, controls, observations))
+    one_step = jax.tree.map(lambda leaf: jax.ShapeDtypeStruct(leaf.shape[1:], leaf.dtype),
+                            (steps, controls, observations))  # T = 0 has no row to index
     blank = jax.tree.map(lambda shape: jnp.zeros(shape.shape, shape.dtype),
-                         jax.eval_shape(advance, state, first)[1])
+                         jax.eval_shape(advance, state, one_step)[1])
+    if record_lineage:  # a skipped step: no association, no birth, every particle its own
+        blank = blank._replace(lineage=blank.lineage._replace(
+            ancestor=jnp.arange(config.num_particles, dtype=blank.lineage.ancestor.dtype),
+            match=jnp.full_like(blank.lineage.match, -1),
+            birth_slot=jnp.full_like(blank.lineage.birth_slot, -1)))
 
     def body(carry, inputs):
         current, stopped = carry
@@ -390,15 +397,16 @@ def run_filter(config: FilterConfig | Filter, key, params: Params, controls,
       record_lineage: also record every particle's ancestry and association in
         ``trace.lineage`` (4 T P K + 16 T P bytes), for ``smoothing.smooth_lineage``.
       stop_at_dropped_birth: skip the steps after the first one that dropped a birth for
-        want of a free slot (``scan_filter``): their trace rows are zeros, and the final
-        state is the state after that step. A dynamic flag: both values share one compiled
-        program.
+        want of a free slot (``scan_filter``): their trace rows are blank (zeros; no
+        association or birth in the lineage), and the final state is the state after that
+        step. A dynamic flag: both values share one compiled program.
     Returns:
       (final ``FilterState``, ``Trace`` with leading axis T).
     Raises:
       ValueError: bad shapes, a non-finite control row (concrete controls only: under jit or
-        vmap the row is masked as in ``scan_filter``), or ``Params`` that
-        ``validation.check_params`` refuses. Float leaves of ``params`` and ``observations``
+        vmap the row is masked as in ``scan_filter``), ``Params`` that
+        ``validation.check_params`` refuses, or a ``stop_at_dropped_birth`` that is not a
+        0-d bool. Float leaves of ``params`` and ``observations``
         are cast to the controls' dtype (the filter's dtype).
     """
     if isinstance(config, Filter):
@@ -417,9 +425,11 @@ def run_filter(config: FilterConfig | Filter, key, params: Params, controls,
             f"got {observations.z.shape}")
     if initial_pose is None:
         initial_pose = jnp.zeros(3, controls.dtype)
-    if not isinstance(stop_at_dropped_birth, (bool, np.bool_)):
-        raise ValueError("stop_at_dropped_birth must be True or False; got "
-                         f"{stop_at_dropped_birth!r}")
+    flag = (stop_at_dropped_birth if isinstance(stop_at_dropped_birth, jax.Array)
+            else np.asarray(stop_at_dropped_birth))  # a traced flag stays traced
+    if flag.shape != () or flag.dtype != np.bool_:
+        raise ValueError("stop_at_dropped_birth must be True or False (a Python, NumPy or JAX "
+                         f"0-d bool); got {stop_at_dropped_birth!r}")
     return _run_filter_jit(config, key, params, controls, observations,
                            jnp.asarray(initial_pose, controls.dtype), bool(record_lineage),
-                           jnp.asarray(bool(stop_at_dropped_birth)))
+                           jnp.asarray(flag))

@@ -337,20 +337,28 @@ def radius_noise_from_history(ids, radius, valid, min_sightings: int = 3,
 
     ids: (T, K) landmark identity of each observation along one particle's history
     (``lineage.landmark_identities``; -1: none); radius: (T, K) detected radii; valid:
-    (T, K). Over the landmarks with at least ``min_sightings`` sightings, the deviations
-    e = r - median_j(r) of each radius from its tree's median are pooled. The core std is
+    (T, K); a radius that is not finite or not positive means "no radius measured" (as in
+    ``sanitize``) and is left out. Over the landmarks with at least ``min_sightings`` such
+    sightings, the deviations e = r - median_j(r) of each radius from its tree's median are
+    pooled. The core std is
     their median absolute deviation, s = 1.4826 median |e|, and it is then widened by
     ``tail_factor`` until the ``quantile`` share of the deviations lies within the filter's
-    interval of that share: std = s sqrt(tail_factor(e, s)) = max(s, q_quantile(|e|) / z),
-    z = 1.96 for 95 %. The same rule as the motion and sensor noise (``tail_factor``): a
-    trunk's detected radius is heavy-tailed (a partly occluded or grazed trunk gives a short
-    chord), and a std fitted to the core alone makes the association's radius term reject
-    those sightings, so the tree is split into a new landmark. For Gaussian scatter the two
-    agree up to sampling noise. Returns (std, observations used); (nan, 0) when no landmark
-    was seen often enough.
+    interval of that share: std = s sqrt(tail_factor(e, s)) = max(s, sqrt(q_quantile(e^2) /
+    chi2_1(q))), about q_quantile(|e|) / 1.96 for 95 % (``quantile`` 0.95 or 0.99, the keys
+    of ``CHI2_1DOF``). Computed as that maximum, so a core of 0 (most radii equal to their
+    tree's median, as quantised radii can be) still gets the tail's width. The same rule as
+    the motion and sensor noise (``tail_factor``): a trunk's detected radius is heavy-tailed
+    (a partly occluded or grazed trunk gives a short chord), and a std fitted to the core
+    alone makes the association's radius term reject those sightings, so the tree is split
+    into a new landmark. For Gaussian scatter the two agree up to sampling noise. Returns
+    (std, observations used); (nan, 0) when no landmark was seen often enough.
     """
-    ids = np.where(np.asarray(valid, bool), np.asarray(ids), -1).ravel()
-    radius = np.asarray(radius, np.float64).ravel()
+    if quantile not in CHI2_1DOF:
+        raise ValueError(f"quantile must be one of {sorted(CHI2_1DOF)}; got {quantile!r}")
+    radius = np.asarray(radius, np.float64)
+    measured = np.asarray(valid, bool) & np.isfinite(radius) & (radius > 0.0)
+    ids = np.where(measured, np.asarray(ids), -1).ravel()
+    radius = radius.ravel()
     keep = ids >= 0
     ids, radius = ids[keep], radius[keep]
     if ids.size == 0:
@@ -362,7 +370,7 @@ def radius_noise_from_history(ids, radius, valid, min_sightings: int = 3,
     medians = np.array([np.median(radius[inverse == j]) if counts[j] >= min_sightings
                         else np.nan for j in range(labels.size)])
     deviation = radius[often] - medians[inverse[often]]
-    core = calibrate.MAD_TO_STD * np.median(np.abs(deviation))
-    if not core > 0.0:  # a constant radius: nothing to widen
-        return float(core), int(often.sum())
-    return float(core * np.sqrt(tail_factor(deviation, core, quantile))), int(often.sum())
+    size = np.abs(deviation)
+    core = calibrate.MAD_TO_STD * np.median(size)
+    tail = np.sqrt(np.quantile(deviation**2, quantile) / CHI2_1DOF[quantile])  # tail_factor's
+    return float(max(core, tail)), int(often.sum())

@@ -366,8 +366,10 @@ def _rows(trace, steps):
 def test_run_filter_stops_at_the_first_dropped_birth():
     """``stop_at_dropped_birth``: the rows up to and including the first step that dropped a
     birth are bit-identical to the whole run's (one compiled program, same key), every later
-    row is zeros, and the final state is the whole run's state after that step (the run on
-    that prefix, compiled for its own length: the same step, so bit-identical on this CPU).
+    row is zeros (the lineage's poses too; its ids: the next test), and the final state is
+    the whole run's state after that step (the run on that prefix, compiled for its own
+    length: the same step, so bit-identical on this CPU; another backend or XLA version may
+    fuse the two programs differently, and then this check would need a tolerance).
     A run that never drops a birth is the same with the flag on or off, and equal to
     ``scan_filter`` without the flag (no cond). Bad flags are refused."""
     from jaxslam.filter import make_filter, scan_filter
@@ -383,8 +385,9 @@ def test_run_filter_stops_at_the_first_dropped_birth():
     assert 0 < first < controls.shape[0] - 1
     chex.assert_trees_all_equal(_rows(stopped, slice(0, first + 1)),
                                 _rows(whole, slice(0, first + 1)))
-    for leaf in jax.tree.leaves(_rows(stopped, slice(first + 1, None))):
-        assert not np.any(leaf), leaf
+    for leaf in jax.tree.leaves(_rows(stopped._replace(lineage=stopped.lineage.pose),
+                                      slice(first + 1, None))):
+        assert not np.any(leaf), leaf  # the lineage's ids: the next test
     prefix = jax.tree.map(lambda a: a[:first + 1], obs)
     final_prefix, _ = run_filter(small, key, params, controls[:first + 1], prefix, poses[0],
                                  record_lineage=True)
@@ -393,8 +396,9 @@ def test_run_filter_stops_at_the_first_dropped_birth():
                               np.asarray(final_stop.particles.pose))
     # No overflow: the flag changes nothing. The cond-free scan (``stop_at_dropped_birth``
     # None) is another compiled program: the particles' paths, ancestry and associations
-    # (the lineage) and resampling are bit-identical, and the sums over particles (weighted mean pose, ESS, evidence)
-    # agree to float32 rounding of differently fused reductions (1e-6 relative seen; 1e-5).
+    # (the lineage) and resampling are bit-identical, and the sums over particles (weighted
+    # mean pose, ESS, evidence) agree to float32 rounding of differently fused reductions
+    # (1e-6 relative seen; 1e-5).
     _, off = run_filter(CONFIG, key, params, controls, obs, poses[0], record_lineage=True)
     _, on = run_filter(CONFIG, key, params, controls, obs, poses[0], record_lineage=True,
                        stop_at_dropped_birth=True)
@@ -418,6 +422,42 @@ def test_run_filter_stops_at_the_first_dropped_birth():
     for bad in (1, "yes", None, np.array([True])):
         with pytest.raises(ValueError, match="stop_at_dropped_birth must be True or False"):
             run_filter(small, key, params, controls, obs, poses[0], stop_at_dropped_birth=bad)
+
+
+def test_run_filter_stop_flag_is_dynamic_and_handles_empty_logs():
+    """Both flag values (Python, NumPy and JAX bools, and a traced one) run one compiled
+    program; the lineage of a skipped step has no association or birth (-1) and each
+    particle as its own ancestor; a zero-step log runs with either value."""
+    from jaxslam.filter import _run_filter_jit
+
+    controls, obs, poses = _log()
+    small = FilterConfig(num_particles=16, max_landmarks=6, max_obs=10)
+    key, params = jax.random.PRNGKey(0), _true_params()
+    run_filter(small, key, params, controls, obs, poses[0], record_lineage=True)
+    compiled = _run_filter_jit._cache_size()
+    _, stopped = run_filter(small, key, params, controls, obs, poses[0], record_lineage=True,
+                            stop_at_dropped_birth=np.True_)
+    for flag in (False, jax.numpy.asarray(True)):
+        run_filter(small, key, params, controls, obs, poses[0], record_lineage=True,
+                   stop_at_dropped_birth=flag)
+    assert _run_filter_jit._cache_size() == compiled
+    first = int(np.flatnonzero(np.asarray(stopped.num_dropped_births))[0])
+    after = jax.tree.map(lambda a: np.asarray(a)[first + 1:], stopped.lineage)
+    assert np.all(after.match == -1) and np.all(after.birth_slot == -1)
+    np.testing.assert_array_equal(after.ancestor,
+                                  np.broadcast_to(np.arange(16), after.ancestor.shape))
+    traced = jax.jit(lambda flag: run_filter(small, key, params, controls, obs, poses[0],
+                                             stop_at_dropped_birth=flag)[1].log_evidence)
+    np.testing.assert_array_equal(traced(True), np.asarray(run_filter(
+        small, key, params, controls, obs, poses[0], stop_at_dropped_birth=True)[1]
+        .log_evidence))
+    empty = jax.tree.map(lambda a: a[:0], obs)
+    for flag in (False, True):
+        final, trace = run_filter(small, key, params, controls[:0], empty, poses[0],
+                                  record_lineage=True, stop_at_dropped_birth=flag)
+        chex.assert_shape(trace.log_evidence, (0,))
+        np.testing.assert_array_equal(final.particles.pose,
+                                      np.broadcast_to(poses[0], (16, 3)))
 
 
 @pytest.mark.parametrize("bad", [[], [0.0, 1.0], [1.0, np.nan], [[1.0]], [2.0, 4.0],

@@ -354,23 +354,51 @@ def test_radius_noise_from_history_recovers_gaussian_scatter():
     assert abs(std - 0.03) < 0.003, std
     assert np.isnan(radius_noise_from_history(-np.ones((2, 3), int), np.ones((2, 3)),
                                               np.ones((2, 3), bool))[0])
+    # The core (MAD) and the 95 % coverage agree here, within the same 10 %.
+    ids, radius, deviation = _radius_history(
+        lambda n: np.random.default_rng(2).normal(0.0, 0.03, n), np.random.default_rng(1))
+    core = 1.4826 * np.median(np.abs(deviation))
+    assert abs(np.quantile(np.abs(deviation), 0.95) / 1.96 / core - 1.0) < 0.1
 
 
-@pytest.mark.parametrize("case", ["student_t", "wrong_associations", "constant"])
+def test_radius_noise_from_history_leaves_out_unmeasured_radii_and_refuses_bad_quantiles():
+    """Radii that are not finite or not positive (no radius measured) are left out: adding
+    such sightings of the same trees changes neither the std nor the count, and a tree seen
+    only so does not count."""
+    ids, radius, _ = _radius_history(lambda n: np.random.default_rng(4).normal(0.0, 0.03, n),
+                                     np.random.default_rng(5))
+    want = radius_noise_from_history(ids, radius, np.ones(ids.shape, bool))
+    extra_ids = np.array([[0, 1, 2, 7, 7, 7]])
+    extra_radius = np.array([[0.0, -0.2, np.nan, np.inf, 0.0, np.nan]])
+    got = radius_noise_from_history(np.concatenate([ids, extra_ids], axis=1),
+                                    np.concatenate([radius, extra_radius], axis=1),
+                                    np.ones((1, ids.shape[1] + 6), bool))
+    assert got == want
+    with pytest.raises(ValueError, match="quantile must be one of"):
+        radius_noise_from_history(ids, radius, np.ones(ids.shape, bool), quantile=0.9)
+
+
+@pytest.mark.parametrize("case", ["student_t", "wrong_associations", "constant",
+                                  "quantised"])
 def test_radius_noise_from_history_covers_the_tails(case):
     """Heavy-tailed scatter (Student's t with 3 degrees of freedom, scale 0.02 m) or 10 %
     wrong associations: the std is widened from the MAD's until 95 % of the deviations lie
     within 1.96 std, i.e. std = max(1.4826 median |e|, q95(|e|) / 1.96) (1.96 as
     sqrt(3.8415), the chi-square quantile the library uses), checked against
-    that formula on deviations computed by plain loops (float64). rtol 1e-4: the library
+    that formula on deviations computed by plain loops (float64). Quantised radii (most equal
+    to their tree's median, a tenth 5 cm off) have a core of 0 and still get the tail's
+    width. rtol 1e-4: the library
     takes the quantile of the squared ratios, the formula of |e|, and the two interpolate
     linearly between the same two order statistics on different scales (the relative gap
     of two neighbouring ones is about 1e-3 here, so the interpolations differ by about
     1e-6). A constant radius gives 0 (no scatter to widen)."""
     rng = np.random.default_rng(3)
-    scatter = {"student_t": lambda n: 0.02 * rng.standard_t(3, n),
+    # t draws below -4.5 are clipped so that no radius of the 0.1-0.4 m trees falls to <= 0
+    # (a radius not measured, left out); the upper tail stays unbounded.
+    scatter = {"student_t": lambda n: 0.02 * np.clip(rng.standard_t(3, n), -4.5, None),
                "wrong_associations": lambda n: rng.normal(0.0, 0.03, n),
-               "constant": lambda n: np.zeros(n)}[case]
+               "constant": lambda n: np.zeros(n),
+               "quantised": lambda n: 0.05 * (rng.random(n) < 0.1)}[case]
     ids, radius, deviation = _radius_history(scatter, rng,
                                              0.1 if case == "wrong_associations" else 0.0)
     std, used = radius_noise_from_history(ids, radius, np.ones(ids.shape, bool))
@@ -380,6 +408,9 @@ def test_radius_noise_from_history_covers_the_tails(case):
     np.testing.assert_allclose(std, want, rtol=1e-4)
     if case == "constant":
         assert std == 0.0
+    elif case == "quantised":
+        assert core == 0.0 and std > 0.0
+        assert np.mean(np.abs(deviation) <= 1.96 * std) >= 0.95
     else:
         assert std > 1.1 * core  # the tails widen it, by more than the MAD's sampling noise
         assert np.mean(np.abs(deviation) <= 1.96 * std) >= 0.95
