@@ -109,6 +109,31 @@ def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int
     return out
 
 
+def unused_radius_hint(history: lineage.LineagePath, obs, params: Params) -> tuple[list, dict]:
+    """When the log's valid observations carry measured trunk radii (> 0) but
+    ``params.radius_noise`` is 0, the radii take no part in the filter: one warning that says
+    so, with the within-tree scatter of those radii along the best particle's ``history``
+    (``noise_fit.radius_noise_from_history``: the std that covers 95 % of it) as a value to
+    try, and {"radius_scatter": that std} for the run's values. ([], {}) otherwise, or when
+    no landmark was seen often enough to measure the scatter."""
+    from jaxslam.noise_fit import radius_noise_from_history
+
+    valid = np.asarray(obs.valid, bool)
+    radius = np.asarray(obs.radius, np.float64)
+    measured = valid & np.isfinite(radius) & (radius > 0.0)
+    if float(np.asarray(params.radius_noise)) > 0.0 or not measured.any():
+        return [], {}
+    ids, _ = lineage.landmark_identities(history.match, history.birth_slot)
+    std, used = radius_noise_from_history(np.asarray(ids), radius, valid)
+    if not np.isfinite(std) or std <= 0.0:
+        return [], {}
+    return [f"{int(measured.sum())} observations carry a trunk radius, but the radius takes no "
+            f"part in the filter while params.radius_noise is 0; the scatter of one tree's "
+            f"radii along this run ({used} observations) is {std:.3g} m: try --set "
+            f"params.radius_noise={std:.3g} with params.association_gate at least 16.27 (a "
+            f"3-dof gate; docs/log_format.md)"], {"radius_scatter": std}
+
+
 def history_counts(history: lineage.LineagePath, valid) -> tuple[float, int]:
     """(share of valid observations matched to no landmark, landmarks started) along one
     particle's history (``lineage.trace_lineage``); valid: (T, K)."""
@@ -208,6 +233,9 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
               "dropped_births": int(np.sum(np.asarray(trace.num_dropped_births))), **closed}
     values.update(_truth_metrics(log, mean_pose, smoothed, est, map_match_threshold))
     warnings = run_warnings(trace, valid, share, config.num_particles, births)
+    hint, scatter = unused_radius_hint(history, obs, params)
+    warnings += hint
+    values.update(scatter)
     if calibration is not None:
         warnings = list(calibration.warnings) + warnings
     warnings = units + list(warnings)

@@ -118,3 +118,58 @@ def test_filter_log_calibrates_and_smooths():
     # behind are not deleted as missed: all five stay mapped.
     assert 5.5 <= float(run.params.max_range) <= 6.0 * 1.02 + 1e-6
     assert run.metrics["num_trees_mapped"] == 5
+
+
+def _radius_log(radius_noise, with_radii=True):
+    """3 observation rows, 30 steps: row k is born into slot k at step 0 and matched to it
+    after; tree k has radius 0.1 + 0.1 k with scatter 0.02 m (fixed draws)."""
+    from jaxslam.lineage import LineagePath
+    from jaxslam.types import Observations
+
+    steps = 30
+    birth = np.full((steps, 3), -1)
+    birth[0] = [0, 1, 2]
+    match = np.tile(np.arange(3), (steps, 1))
+    match[0] = -1
+    history = LineagePath(np.zeros((steps, 3)), match, birth)
+    scatter = np.random.default_rng(0).normal(0.0, 0.02, (steps, 3))
+    radius = (0.1 + 0.1 * np.arange(3) + scatter) if with_radii else np.zeros((steps, 3))
+    obs = Observations(z=np.ones((steps, 3, 2)), valid=np.ones((steps, 3), bool),
+                       radius=radius, landmark_id=-np.ones((steps, 3), int))
+    return history, obs, default_params(radius_noise=radius_noise)
+
+
+def test_unused_radius_hint_names_the_scatter_only_when_the_radii_go_unused():
+    """Radii measured and radius_noise 0: one warning with the count and the scatter that
+    ``noise_fit.radius_noise_from_history`` gives for the same ids; no warning when the
+    radius is in use or the log has none."""
+    from jaxslam.noise_fit import radius_noise_from_history
+
+    history, obs, params = _radius_log(0.0)
+    hint, values = pipeline.unused_radius_hint(history, obs, params)
+    ids = np.where(np.arange(30)[:, None] >= 0, np.arange(3)[None, :], -1)
+    want, used = radius_noise_from_history(ids, obs.radius, obs.valid)
+    assert used == 90 and 0.01 < want < 0.04  # the 0.02 m scatter, widened for its tails
+    assert values == {"radius_scatter": want}
+    assert len(hint) == 1 and "90 observations carry a trunk radius" in hint[0]
+    assert f"params.radius_noise={want:.3g}" in hint[0] and "16.27" in hint[0]
+    assert pipeline.unused_radius_hint(*_radius_log(0.05)) == ([], {})
+    assert pipeline.unused_radius_hint(*_radius_log(0.0, with_radii=False)) == ([], {})
+
+
+@pytest.mark.slow  # 13 s, as the run above; the hint's own test keeps it in the default tier
+def test_filter_log_warns_when_the_logs_radii_go_unused():
+    """The log above with trunk radii (0.2 m, 1 cm scatter) and radius_noise 0: the run's
+    warnings name them and metrics carry the within-tree scatter (about 0.01 m, within 50 %:
+    about 30 samples); with radius_noise set, neither."""
+    config = FilterConfig(num_particles=8, max_landmarks=16)
+    params = default_params(range_std_floor=0.05, bearing_std_floor=0.01, max_range=6.0)
+    log = _log()
+    radius = 0.2 + np.random.default_rng(0).normal(0.0, 0.01, log.obs_valid.shape)
+    log = log._replace(obs_radius=radius)
+    run = pipeline.filter_log(log, config, params, jax.random.PRNGKey(0), calibrate=False)
+    assert len(run.warnings) == 1 and "carry a trunk radius" in run.warnings[0]
+    assert 0.005 < run.metrics["radius_scatter"] < 0.015
+    used = pipeline.filter_log(log, config, params._replace(radius_noise=0.01),
+                               jax.random.PRNGKey(0), calibrate=False)
+    assert used.warnings == () and "radius_scatter" not in used.metrics
