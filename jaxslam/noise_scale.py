@@ -258,6 +258,8 @@ def describe_search(found: ScaleSearch) -> str:
         line += (f" (births dropped, map full: motion {found.motion_dropped.tolist()}, "
                  f"observation {found.observation_dropped.tolist()}"
                  + ("; -1: not run" if not_run else "")
+                 + ("; a stopped run counts the births of the step it stopped at"
+                    if stopped else "")
                  + "; only runs that dropped none compete, and a stage where every run "
                  "dropped births keeps x1)")
     return line

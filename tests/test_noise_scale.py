@@ -329,7 +329,9 @@ def test_describe_search_names_runs_not_made_and_births_dropped():
     stopped = ns.describe_search(found._replace(observation_objective=np.array([5.0, np.nan]),
                                                 observation_dropped=np.array([0, 3])))
     assert "nan where a run stopped at its first dropped birth" in stopped
-    assert "observation [0, 3]" in stopped
+    assert "observation [0, 3]; -1: not run; a stopped run counts the births of the step it " \
+        "stopped at" in stopped
+    assert "a stopped run counts" not in full
 
 
 def test_run_score_counts_the_births_a_full_map_dropped():
