@@ -187,13 +187,6 @@ def run_score(config: FilterConfig, key, params: Params, controls,
     return RunScore(log_likelihood, dropped)
 
 
-def log_likelihood(config: FilterConfig, key, params: Params, controls,
-                   observations: Observations, initial_pose=None) -> float:
-    """``run_score``'s log marginal likelihood alone, of the whole run (never stopped)."""
-    return run_score(config, key, params, controls, observations, initial_pose,
-                     stop_at_dropped_birth=False).log_likelihood
-
-
 def best_scale(scales, objective, dropped=None) -> float:
     """The scale (S,) of highest finite ``objective`` (S,), the first of ties; 1 (EM's own
     estimate) when no objective is finite (NaN or +-inf everywhere). With ``dropped`` (S,),
@@ -254,7 +247,7 @@ def describe_search(found: ScaleSearch) -> str:
     if stopped:
         line += (" (nan where a run stopped at its first dropped birth: the map was full, so "
                  "it could not be chosen)")
-    if np.any(found.motion_dropped > 0) or np.any(found.observation_dropped > 0):
+    if np.any(dropped > 0):
         line += (f" (births dropped, map full: motion {found.motion_dropped.tolist()}, "
                  f"observation {found.observation_dropped.tolist()}"
                  + ("; -1: not run" if not_run else "")

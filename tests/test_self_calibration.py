@@ -347,16 +347,14 @@ def test_radius_noise_from_history_recovers_gaussian_scatter():
     """Gaussian scatter 0.03 m: the core (MAD) std and the 95 % coverage agree, and the
     estimate is within 10 % of 0.03 (the standard error of either at 1,200 samples is
     about 3-4 %: 10 % is about three of them)."""
-    ids, radius, _ = _radius_history(lambda n: np.random.default_rng(2).normal(0.0, 0.03, n),
-                                     np.random.default_rng(1))
+    ids, radius, deviation = _radius_history(
+        lambda n: np.random.default_rng(2).normal(0.0, 0.03, n), np.random.default_rng(1))
     std, used = radius_noise_from_history(ids, radius, np.ones(ids.shape, bool))
     assert used == 1200
     assert abs(std - 0.03) < 0.003, std
     assert np.isnan(radius_noise_from_history(-np.ones((2, 3), int), np.ones((2, 3)),
                                               np.ones((2, 3), bool))[0])
     # The core (MAD) and the 95 % coverage agree here, within the same 10 %.
-    ids, radius, deviation = _radius_history(
-        lambda n: np.random.default_rng(2).normal(0.0, 0.03, n), np.random.default_rng(1))
     core = 1.4826 * np.median(np.abs(deviation))
     assert abs(np.quantile(np.abs(deviation), 0.95) / 1.96 / core - 1.0) < 0.1
 
@@ -384,14 +382,13 @@ def test_radius_noise_from_history_covers_the_tails(case):
     """Heavy-tailed scatter (Student's t with 3 degrees of freedom, scale 0.02 m) or 10 %
     wrong associations: the std is widened from the MAD's until 95 % of the deviations lie
     within 1.96 std, i.e. std = max(1.4826 median |e|, q95(|e|) / 1.96) (1.96 as
-    sqrt(3.8415), the chi-square quantile the library uses), checked against
-    that formula on deviations computed by plain loops (float64). Quantised radii (most equal
-    to their tree's median, a tenth 5 cm off) have a core of 0 and still get the tail's
-    width. rtol 1e-4: the library
-    takes the quantile of the squared ratios, the formula of |e|, and the two interpolate
-    linearly between the same two order statistics on different scales (the relative gap
-    of two neighbouring ones is about 1e-3 here, so the interpolations differ by about
-    1e-6). A constant radius gives 0 (no scatter to widen)."""
+    sqrt(3.8415), the chi-square quantile the library uses), checked against that formula on
+    deviations computed by plain loops (float64). Quantised radii (most equal to their tree's
+    median, a tenth 5 cm off) have a core of 0 and still get the tail's width. rtol 1e-4: the
+    library takes the quantile of the squared deviations, the formula of |e|, and the two
+    interpolate linearly between the same two order statistics on different scales (the
+    relative gap of two neighbouring ones is about 1e-3 here, so the interpolations differ by
+    about 1e-6). A constant radius gives 0 (no scatter to widen)."""
     rng = np.random.default_rng(3)
     # t draws below -4.5 are clipped so that no radius of the 0.1-0.4 m trees falls to <= 0
     # (a radius not measured, left out); the upper tail stays unbounded.
