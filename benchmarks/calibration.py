@@ -25,8 +25,8 @@ How to read a line:
   iterations (each runs the filter once); ``x a run per iteration`` shows what an iteration
   costs beyond its filter run (1.0 would be the filter alone).
 * The iteration count is the calibration's own (EM stops when every noise group's typical std
-  moved by less than 5 %, else after 6): a log whose calibration does not converge (MRCLAM)
-  costs 6 runs whatever the rest costs, and the count can differ between logs, keys, and
+  moved by less than 5 %, else after 5): a log whose calibration does not converge (MRCLAM)
+  costs 5 runs whatever the rest costs, and the count can differ between logs, keys, and
   versions of the code (the filter is a chaotic function of its settings).
 * The machine is shared: a ratio moves by 20-30 % from one invocation to the next. Compare
   versions in one process, back to back, and repeat.
@@ -115,22 +115,25 @@ def _timed_stages(totals):
     return restore
 
 
-def bench(name, config, controls, obs, start, stages: bool = False, params=None):
+def bench(name, config, controls, obs, start, stages: bool = False, params=None,
+          repeats: int = 3, search_workers: int | None = None):
     """Print one log's line (module docstring); ``params``: the calibration's starting point
-    (default ``starting_params(config)``)."""
+    (default ``starting_params(config)``); ``repeats``: filter runs whose median time is the
+    ratio's unit; ``search_workers``: ``calibrate_params``' (None: its default)."""
     key = jax.random.PRNGKey(0)
     params = starting_params(config) if params is None else params
     controls = jnp.asarray(controls, jnp.float32)
     start = jnp.asarray(start, jnp.float32)
     first, _ = _time(lambda: run_filter(config, key, params, controls, obs, start,
                                         record_lineage=True))
-    run, _ = _time(lambda: run_filter(config, key, params, controls, obs, start,
-                                      record_lineage=True))
+    run = float(np.median([_time(lambda: run_filter(config, key, params, controls, obs, start,
+                                                    record_lineage=True))[0]
+                           for _ in range(repeats)]))
     totals = collections.defaultdict(float)
     restore = _timed_stages(totals) if stages else (lambda: None)
     try:
-        seconds, (_, info) = _time(lambda: calibrate_params(config, key, controls, obs, start,
-                                                            params))
+        seconds, (_, info) = _time(lambda: calibrate_params(
+            config, key, controls, obs, start, params, search_workers=search_workers))
     finally:
         restore()
     print(f"{name}: T={controls.shape[0]} P={config.num_particles} K={config.max_obs} | "
@@ -165,16 +168,25 @@ def main(argv=None):
                         "its calibration takes about 8-15 minutes)")
     parser.add_argument("--only", choices=["simulated", "mrclam", "victoria_park"],
                         nargs="+", help="run only these logs")
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="filter runs timed for the ratio's unit, their median (default 3)")
+    parser.add_argument("--search-workers", type=int, default=None,
+                        help="candidates the scale search runs at once (default: "
+                        "calibrate_params' own, 2 on a CPU with two or more cores)")
     parser.add_argument("--stages", action="store_true",
                         help="print the seconds spent in each stage of the calibration")
     args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error(f"--repeats must be a positive integer; got {args.repeats}")
+    timing = dict(repeats=args.repeats, search_workers=args.search_workers)
     from experiments.self_calibration import make_log, true_params
 
     only = set(args.only or ("simulated", "mrclam", "victoria_park"))
     if "simulated" in only:
         controls, obs, poses, _ = make_log(jax.random.PRNGKey(7), true_params(2.0, 2.0), 0.0)
         bench("simulated loop", FilterConfig(num_particles=args.particles, max_landmarks=96,
-                                             max_obs=12), controls, obs, poses[0], args.stages)
+                                             max_obs=12), controls, obs, poses[0], args.stages,
+              **timing)
     if "mrclam" in only and not args.skip_mrclam:
         if args.mrclam is None or not pathlib.Path(args.mrclam).is_dir():
             print(f"MRCLAM: skipped (no data folder: give --mrclam DIR or set "
@@ -186,7 +198,7 @@ def main(argv=None):
             for robot in args.robots:
                 log = load_mrclam(pathlib.Path(args.mrclam), robot)
                 bench(f"MRCLAM robot {robot}", *log_inputs(log, FilterConfig(
-                    num_particles=args.particles, max_landmarks=64)), args.stages)
+                    num_particles=args.particles, max_landmarks=64)), args.stages, **timing)
     if "victoria_park" in only:
         if args.victoria_park is None or not pathlib.Path(args.victoria_park).is_dir():
             print(f"Victoria Park: skipped (no data folder: give --victoria-park DIR or set "
@@ -194,7 +206,7 @@ def main(argv=None):
         else:
             config, controls, obs, start, params = victoria_park_case(args.victoria_park,
                                                                        args.particles)
-            bench("Victoria Park", config, controls, obs, start, args.stages, params)
+            bench("Victoria Park", config, controls, obs, start, args.stages, params, **timing)
 
 
 def victoria_park_case(folder, num_particles):

@@ -45,6 +45,16 @@ not: on Victoria Park they did not, and they never stop the walk). A stage whose
 overflow runs every candidate, as no run is fair. This saves the runs past the peak: on
 MRCLAM's motion x2, observation x1, 3 of the 6 runs.
 
+On a CPU the walk scores two candidates at a time (``workers``, ``default_workers``): when it
+needs a candidate, that one and the next of its direction run together, each in its own
+thread, on the one compiled filter. A filter run of a log does about one core's useful work
+(its steps are many small kernels), so on two cores the pair takes the time of 1.1 runs
+(MRCLAM) to 1.3 runs (Victoria Park). The walk then reads the scores in its own order, and a
+candidate scored ahead of a stop is not used: the choice and the reported scores are those
+of the one-at-a-time walk, and only the time changes (a run past the stop is spent, at little
+wall-clock cost on two cores). ``calibrate_params`` also hands the search the first
+candidate's score when it could run it beside EM's last filter run (``Speculation``).
+
 The new-landmark credit is held fixed. The filter credits an observation that no landmark
 explains with the density of a match at the gate under the observation's own noise
 (``ekf.unexplained_log_likelihood``), -gate / 2 - log(sigma_r sigma_b) - log 2 pi + offset,
@@ -81,8 +91,11 @@ Shapes: S candidates, T steps, K observations a step.
 """
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -201,34 +214,109 @@ def best_scale(scales, objective, dropped=None) -> float:
     return float(np.asarray(scales)[int(np.argmax(objective))])
 
 
-def walk_stage(scales, score, stop_at_first_drop: bool = True):
+def default_workers() -> int:
+    """Candidates ``search_noise_scales`` runs at once by default: 2 on a CPU with two or more
+    cores, else 1. One filter run of a log keeps about one core busy with useful work (its
+    steps are many small kernels), so two runs in two threads take about the time of one:
+    MRCLAM robot 2 (T 4179, P 100), two candidates back to back 6.9-7.1 s, the same two in two
+    threads 3.8 s; Victoria Park (T 7230, 320 slots), two whole runs 29.1 s against 19.2 s;
+    identical scores (docs/results.md, calibration_time). On an accelerator two calls share
+    one device and would run one after the other."""
+    return 2 if jax.default_backend() == "cpu" and (os.cpu_count() or 1) >= 2 else 1
+
+
+def check_workers(workers) -> int:
+    """``workers`` as a positive int (None: ``default_workers()``), else ValueError."""
+    if workers is None:
+        return default_workers()
+    if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
+        raise ValueError(f"workers must be a positive integer (candidates scored at once) or "
+                         f"None for the default; got {workers!r}")
+    return int(workers)
+
+
+def walk_stage(scales, score, stop_at_first_drop: bool = True, workers: int = 1,
+               known=None):
     """One stage's (objective (S,), dropped (S,)) over ``scales`` (S,) (contains 1), with
     ``score(scale) -> RunScore``: candidates run outward from 1, the larger scales upward and
     then the smaller downward. With ``stop_at_first_drop`` a direction stops after a fair run
     (dropped no birth, finite score) that scores below the best fair run met on that walk
-    (1 included); candidates not run get NaN and -1 (module docstring)."""
-    scales = np.asarray(scales, np.float64)
-    objective = np.full(scales.shape, np.nan)
-    dropped = np.full(scales.shape, -1, np.int64)
+    (1 included); candidates not run get NaN and -1 (module docstring).
 
-    def run(index) -> float:  # the run's fair score, -inf when it is not fair
-        result = score(float(scales[index]))
-        objective[index], dropped[index] = result.log_likelihood, result.dropped_births
+    ``workers``: when a candidate is needed, it and the next ``workers`` - 1 unscored ones of
+    its direction are scored at once, each in its own thread (``score`` must be thread-safe);
+    the walk then reads them in order, so a candidate scored ahead of a stop is not used and
+    reads NaN and -1 as if not run: the result is the same for every ``workers``, only the
+    time differs. ``known``: {scale: RunScore} already scored (not scored again; scales not
+    in the grid are ignored)."""
+    scales = np.asarray(scales, np.float64)
+    results = {int(np.flatnonzero(scales == scale)[0]): result
+               for scale, result in (known or {}).items() if np.any(scales == scale)}
+
+    def fetch(indices) -> None:  # score the first ``workers`` unscored of ``indices``
+        todo = [index for index in indices if index not in results][:workers]
+        if len(todo) > 1:
+            with ThreadPoolExecutor(len(todo)) as pool:
+                scored = list(pool.map(lambda index: score(float(scales[index])), todo))
+        else:
+            scored = [score(float(scales[index])) for index in todo]
+        results.update(zip(todo, scored))
+
+    used = set()
+
+    def fair_score(walk, position) -> float:  # the run's fair score, -inf when not fair
+        if walk[position] not in results:
+            fetch(walk[position:])
+        used.add(walk[position])
+        result = results[walk[position]]
         fair = result.dropped_births == 0 and np.isfinite(result.log_likelihood)
         return float(result.log_likelihood) if fair else -np.inf
 
     start = int(np.flatnonzero(scales == 1.0)[0])
-    at_one = run(start)
-    up = [i for i in np.argsort(scales, kind="stable") if scales[i] > 1.0]
-    down = [i for i in np.argsort(-scales, kind="stable") if scales[i] < 1.0]
+    up = [int(i) for i in np.argsort(scales, kind="stable") if scales[i] > 1.0]
+    down = [int(i) for i in np.argsort(-scales, kind="stable") if scales[i] < 1.0]
     for direction in (up, down):
-        best = at_one
-        for index in direction:
-            value = run(index)
+        walk = [start] + direction
+        best = fair_score(walk, 0)
+        for position in range(1, len(walk)):
+            value = fair_score(walk, position)
             if stop_at_first_drop and np.isfinite(value) and value < best:
                 break
             best = max(best, value)
+    objective = np.full(scales.shape, np.nan)
+    dropped = np.full(scales.shape, -1, np.int64)
+    for index in used:
+        objective[index], dropped[index] = (results[index].log_likelihood,
+                                            results[index].dropped_births)
     return objective, dropped
+
+
+def first_candidate(motion_scales, observation_scales) -> tuple[float, float] | None:
+    """The first candidate (s_m, s_o) ``search_noise_scales`` scores after EM's own x1: the
+    motion stage's first upward scale (else its first downward one), or, when the motion grid
+    is (1,), the observation stage's at s_m = 1; None when both grids are (1,)."""
+    for stage, scales in enumerate((check_scales("motion_scales", motion_scales),
+                                    check_scales("observation_scales", observation_scales))):
+        up, down = scales[scales > 1.0], scales[scales < 1.0]
+        if up.size or down.size:
+            scale = float(up.min() if up.size else down.max())
+            return (scale, 1.0) if stage == 0 else (1.0, scale)
+    return None
+
+
+class Speculation:
+    """``run_score`` of one candidate (``first_candidate`` of run ``best``'s settings) started
+    in a background thread while EM's filter runs its last iteration (``calibrate_params``).
+    The thread ends with its run; ``result()`` waits for it."""
+
+    def __init__(self, best: int, candidate: tuple[float, float], run):
+        self.best, self.candidate = best, candidate
+        pool = ThreadPoolExecutor(1)
+        self._future = pool.submit(run)
+        pool.shutdown(wait=False)
+
+    def result(self) -> RunScore:
+        return self._future.result()
 
 
 def describe_search(found: ScaleSearch) -> str:
@@ -275,7 +363,9 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
                         observation_scales=DEFAULT_SCALES,
                         known_objective: float | None = None,
                         known_dropped: int | None = None,
-                        stop_at_first_drop: bool = True) -> tuple[Params, ScaleSearch]:
+                        stop_at_first_drop: bool = True,
+                        workers: int | None = None,
+                        known_scores=None) -> tuple[Params, ScaleSearch]:
     """Multiply ``params``' motion and observation noise by the scales of highest filter log
     marginal likelihood (module docstring: coordinate ascent, motion first).
 
@@ -291,6 +381,10 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
       stop_at_first_drop: walk each grid outward from 1 and stop a direction once a fair
         candidate scores below the best met on it (module docstring); False runs every
         candidate.
+      workers: candidates scored at once, each in its own thread (``walk_stage``; the same
+        result for every value); None: ``default_workers()``.
+      known_scores: {(s_m, s_o): RunScore} of candidates already scored with ``key`` on
+        these inputs (``calibrate_params``' speculation), not run again.
     Returns:
       (scaled ``Params``, ``ScaleSearch``; a candidate not run has objective NaN and
       dropped -1). A stage whose candidates all score a non-finite value keeps 1, and so does
@@ -298,24 +392,31 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
     """
     motion_scales = check_scales("motion_scales", motion_scales)
     observation_scales = check_scales("observation_scales", observation_scales)
+    workers = check_workers(workers)
     if (known_objective is None) != (known_dropped is None):
         raise ValueError("known_objective and known_dropped go together (one run_score); got "
                          f"{known_objective} and {known_dropped}")
     scored = {} if known_objective is None else {
         (1.0, 1.0): RunScore(float(known_objective), int(known_dropped))}
+    scored.update({(float(m), float(o)): RunScore(*score)
+                   for (m, o), score in (known_scores or {}).items()})
 
-    def score(motion: float, observation: float) -> RunScore:
-        if (motion, observation) not in scored:  # each candidate runs once
-            scored[motion, observation] = run_score(
-                config, key, scaled_noise(params, motion, observation), controls,
-                observations, initial_pose)
+    def score(motion: float, observation: float) -> RunScore:  # threads: distinct keys
+        scored[motion, observation] = run_score(
+            config, key, scaled_noise(params, motion, observation), controls, observations,
+            initial_pose)
         return scored[motion, observation]
 
+    def known(fixed: int, value: float) -> dict:  # a stage's candidates already run
+        return {pair[1 - fixed]: result for pair, result in scored.items()
+                if pair[fixed] == value}
+
     motion_objective, motion_dropped = walk_stage(
-        motion_scales, lambda m: score(m, 1.0), stop_at_first_drop)
+        motion_scales, lambda m: score(m, 1.0), stop_at_first_drop, workers, known(1, 1.0))
     motion_scale = best_scale(motion_scales, motion_objective, motion_dropped)
     observation_objective, observation_dropped = walk_stage(
-        observation_scales, lambda o: score(motion_scale, o), stop_at_first_drop)
+        observation_scales, lambda o: score(motion_scale, o), stop_at_first_drop, workers,
+        known(0, motion_scale))
     observation_scale = best_scale(observation_scales, observation_objective,
                                    observation_dropped)
     return scaled_noise(params, motion_scale, observation_scale), ScaleSearch(

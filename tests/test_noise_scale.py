@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import functools
+import os
+import threading
 import types
 
 import chex
@@ -283,6 +285,79 @@ def test_walk_sorts_the_grid_and_starts_each_direction_from_one():
     np.testing.assert_array_equal(dropped, [0, -1, 0, 0, 0, 0])
     assert ns.best_scale(grid, objective, dropped) == 2.0
 
+
+WALK_TABLES = (  # the stubbed stages above, each with its grid
+    (GRID, {1.0: (5.0, 0), 2.0: (9.0, 0), 4.0: (7.0, 0), 8.0: (8.0, 0), 16.0: (1.0, 0)}),
+    (GRID, {1.0: (50.0, 7), 2.0: (np.nan, 0), 4.0: (40.0, 3), 8.0: (6.0, 0), 16.0: (5.0, 0)}),
+    (GRID, {scale: (10.0 - scale, 1) for scale in GRID}),
+    (np.array([2.0, 0.25, 1.0, 0.5, 4.0]),
+     {0.25: (0.0, 0), 0.5: (3.0, 0), 1.0: (4.0, 0), 2.0: (1.0, 0), 4.0: (9.0, 0)}),
+    (np.array([1.0, 8.0, 0.25, 2.0, 4.0, 0.5]),
+     {1.0: (5.0, 0), 2.0: (9.0, 0), 4.0: (7.0, 0), 8.0: (1.0, 0), 0.5: (6.0, 0),
+      0.25: (4.0, 0)}),
+)
+
+
+@pytest.mark.parametrize("grid, table", WALK_TABLES)
+@pytest.mark.parametrize("workers", [2, 3, 8])
+@pytest.mark.parametrize("stop", [True, False])
+def test_walk_with_workers_returns_the_sequential_walk(grid, table, workers, stop):
+    """Candidates scored ahead of a stop are not used: objective and dropped equal the
+    one-at-a-time walk's for every table above; each direction scores at most workers - 1
+    candidates more than it uses."""
+    score, calls = _stub_scores(table)
+    expected = ns.walk_stage(grid, score, stop)
+    used = len(calls)
+    calls.clear()
+    objective, dropped = ns.walk_stage(grid, score, stop, workers=workers)
+    np.testing.assert_array_equal(objective, expected[0])
+    np.testing.assert_array_equal(dropped, expected[1])
+    assert len(set(calls)) == len(calls)  # each candidate at most once
+    assert used <= len(calls) <= used + 2 * (workers - 1)
+
+
+def test_walk_with_workers_scores_candidates_at_once_and_skips_known_ones():
+    """With workers=2 the first two unscored candidates of the upward walk are in flight
+    together (a barrier of 2 would time out if they ran one after the other); a ``known``
+    x1 is not scored again, so the pair is x2 and x4."""
+    barrier = threading.Barrier(2, timeout=30.0)
+    table = {1.0: (5.0, 0), 2.0: (9.0, 0), 4.0: (7.0, 0), 8.0: (8.0, 0), 16.0: (1.0, 0)}
+    calls = []
+
+    def score(scale):
+        calls.append(scale)
+        barrier.wait()
+        return ns.RunScore(*table[scale])
+
+    objective, dropped = ns.walk_stage(GRID, score, workers=2,
+                                       known={1.0: ns.RunScore(5.0, 0)})
+    assert sorted(calls) == [2.0, 4.0]  # 4 falls below 2: the walk stops there
+    np.testing.assert_array_equal(objective, [5.0, 9.0, 7.0, np.nan, np.nan])
+    np.testing.assert_array_equal(dropped, [0, 0, 0, -1, -1])
+
+
+def test_search_with_workers_equals_the_search_one_at_a_time():
+    """Real filter runs in two threads score exactly what they score one after the other
+    (the same compiled program on the same inputs), so the choice and every score agree."""
+    controls, obs, poses = _log()
+    narrow = ns.scaled_noise(_true_params(), 0.25, 0.25)
+    kwargs = dict(motion_scales=(1.0, 2.0, 4.0, 8.0), observation_scales=(1.0, 2.0, 4.0, 8.0))
+    one = ns.search_noise_scales(CONFIG, jax.random.PRNGKey(0), narrow, controls, obs,
+                                 poses[0], workers=1, **kwargs)
+    two = ns.search_noise_scales(CONFIG, jax.random.PRNGKey(0), narrow, controls, obs,
+                                 poses[0], workers=2, **kwargs)
+    chex.assert_trees_all_equal(one, two)
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
+def test_bad_workers_are_refused_with_a_clear_error(bad):
+    with pytest.raises(ValueError, match="workers must be a positive integer"):
+        ns.check_workers(bad)
+
+
+def test_default_workers_use_a_second_cpu_core():
+    expected = 2 if jax.default_backend() == "cpu" and (os.cpu_count() or 1) >= 2 else 1
+    assert ns.default_workers() == expected and ns.check_workers(None) == expected
 
 def test_search_passes_the_stop_through_and_its_verdict_says_what_was_not_run(monkeypatch):
     """Scores stubbed: the likelihood falls at x2 in both stages, so the walk runs x1 and x2

@@ -117,7 +117,7 @@ def _add_no_scale_search(parser, prefix: str = "") -> None:
                         help=f"{prefix}stop the calibration's EM once N filter runs in a row "
                              "have not beaten the best log marginal likelihood before them, "
                              "and keep that best run's settings; 0: run until the noise stops "
-                             "moving or 6 iterations (default: 2)")
+                             "moving or 5 iterations (default: 2)")
 
 
 def _add_calibrate(sub) -> None:
