@@ -1,14 +1,16 @@
 """Benchmark of ``jaxslam.calibrate_params``: its time as a multiple of one filter run.
 
 One filter run is ``run_filter(..., record_lineage=True)`` after compiling; the calibration
-runs it once an EM iteration, so a calibration can never cost less than ``iterations`` runs.
-The filter is compiled by an untimed first call (same shapes as the calibration's runs), then
-one run and the whole calibration are timed back to back in this process, and the ratio is
-calibration / run. Everything else a calibration does, compiles included, counts against it:
-a user calls ``calibrate_params`` once, in a fresh process. Logs: a held-out simulated loop
+runs it once an EM iteration, so a calibration can never cost less than its iterations'
+runs (two search candidates can share one run's time: ``noise_scale.default_workers``). The
+filter is compiled by an untimed first call (same shapes as the calibration's runs), then
+``--repeats`` runs (their median is the unit) and the whole calibration are timed back to
+back in this process, and the ratio is calibration / run. Everything else a calibration
+does, compiles included, counts against it: a user calls ``calibrate_params`` once, in a
+fresh process. Logs: a held-out simulated loop
 (the ``experiments/self_calibration.py`` generator: 250 steps, 40 trees), UTIAS MRCLAM
 robot 1 (3,809 steps; ``--robots`` names others) and Victoria Park (7,230 scans; its
-calibration takes about 8-15 minutes on 2 cores) when their folders are given.
+calibration takes about 4.5-5.5 minutes on 2 cores) when their folders are given.
 
     python benchmarks/calibration.py [--particles 100] [--stages]
     python benchmarks/calibration.py --mrclam DIR     # or JAXSLAM_MRCLAM=DIR; --skip-mrclam
@@ -22,12 +24,14 @@ How to read a line:
       iteration
 
 * ``Nx one filter run``: the figure of merit (target: under 10x). Its floor is the number of
-  iterations (each runs the filter once); ``x a run per iteration`` shows what an iteration
-  costs beyond its filter run (1.0 would be the filter alone).
+  iterations (each runs the filter once; two search candidates can share one run's time);
+  ``x a run per iteration`` shows what an iteration costs beyond its filter run (1.0 would
+  be the filter alone).
 * The iteration count is the calibration's own (EM stops when every noise group's typical std
-  moved by less than 5 %, else after 5): a log whose calibration does not converge (MRCLAM)
-  costs 5 runs whatever the rest costs, and the count can differ between logs, keys, and
-  versions of the code (the filter is a chaotic function of its settings).
+  moved by less than 5 %, else after 5, or when two runs in a row did not beat the best): a
+  log whose calibration does not converge (MRCLAM) costs up to 5 runs whatever the rest
+  costs, and the count can differ between logs, keys, and versions of the code (the filter
+  is a chaotic function of its settings).
 * The machine is shared: a ratio moves by 20-30 % from one invocation to the next. Compare
   versions in one process, back to back, and repeat.
 * The next lines: EM's log marginal likelihood and dropped births for each iteration's filter
@@ -165,7 +169,7 @@ def main(argv=None):
                         default=os.environ.get("JAXSLAM_VICTORIA_PARK"),
                         help="folder of the Victoria Park files (default: "
                         "$JAXSLAM_VICTORIA_PARK; without either, Victoria Park is skipped: "
-                        "its calibration takes about 8-15 minutes)")
+                        "its calibration takes about 4.5-5.5 minutes)")
     parser.add_argument("--only", choices=["simulated", "mrclam", "victoria_park"],
                         nargs="+", help="run only these logs")
     parser.add_argument("--repeats", type=int, default=3,

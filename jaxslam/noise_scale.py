@@ -35,7 +35,7 @@ are not searched by default: EM's failure is the shrinking loop above.
 Each stage walks its grid outward from 1 (upward through the larger scales, then downward
 through the smaller ones) and, with ``stop_at_first_drop``, stops a direction at the first fair
 candidate (dropped no birth, finite score; below) that scores lower than the best fair one met
-so far on that walk; the candidates it did not run score NaN. For one Gaussian noise group
+so far on that walk; the candidates it did not use score NaN. For one Gaussian noise group
 whose std is multiplied by s, the expected log likelihood -n log s - Q / (2 s^2) (n residuals
 of summed squared whitened size Q at s = 1) has one maximum, at s^2 = Q / n, so a drop means
 the peak is passed. The particle filter's estimate is noisy and the walk assumes it keeps that
@@ -52,8 +52,7 @@ thread, on the one compiled filter. A filter run of a log does about one core's 
 (MRCLAM) to 1.3 runs (Victoria Park). The walk then reads the scores in its own order, and a
 candidate scored ahead of a stop is not used: the choice and the reported scores are those
 of the one-at-a-time walk, and only the time changes (a run past the stop is spent, at little
-wall-clock cost on two cores). ``calibrate_params`` also hands the search the first
-candidate's score when it could run it beside EM's last filter run (``Speculation``).
+wall-clock cost on two cores).
 
 The new-landmark credit is held fixed. The filter credits an observation that no landmark
 explains with the density of a match at the gate under the observation's own noise
@@ -92,7 +91,7 @@ Shapes: S candidates, T steps, K observations a step.
 from __future__ import annotations
 
 import os
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import NamedTuple
 
 import jax
@@ -115,11 +114,11 @@ class ScaleSearch(NamedTuple):
     marginal likelihoods. observation_scales / observation_objective: the same for the second
     stage (at the chosen s_m). motion_dropped / observation_dropped: (S_m,) / (S_o,) the
     births each candidate's run dropped for want of a free slot (summed over particles and
-    steps; ``best_scale``). A candidate the walk did not run (``walk_stage``) has objective
-    NaN and dropped -1; one stopped at its first dropped birth (``run_score``) has objective
-    NaN and the births dropped at that step (> 0). The x1 candidate given as
-    ``known_objective`` / ``known_dropped`` (EM's own run) is a whole run: its score and count
-    are that run's, even when it overflowed.
+    steps; ``best_scale``). A candidate the walk did not use (``walk_stage``: not run, or run
+    ahead of its stop) has objective NaN and dropped -1; one stopped at its first dropped
+    birth (``run_score``) has objective NaN and the births dropped at that step (> 0). The x1
+    candidate given as ``known_objective`` / ``known_dropped`` (EM's own run) is a whole run:
+    its score and count are that run's, even when it overflowed.
     """
 
     motion_scale: float
@@ -215,23 +214,26 @@ def best_scale(scales, objective, dropped=None) -> float:
 
 
 def default_workers() -> int:
-    """Candidates ``search_noise_scales`` runs at once by default: 2 on a CPU with two or more
-    cores, else 1. One filter run of a log keeps about one core busy with useful work (its
-    steps are many small kernels), so two runs in two threads take about the time of one:
-    MRCLAM robot 2 (T 4179, P 100), two candidates back to back 6.9-7.1 s, the same two in two
-    threads 3.8 s; Victoria Park (T 7230, 320 slots), two whole runs 29.1 s against 19.2 s;
-    identical scores (docs/results.md, calibration_time). On an accelerator two calls share
+    """Candidates ``search_noise_scales`` runs at once by default: 2 on a CPU when this process
+    may use two or more cores, else 1. One filter run of a log keeps about one core busy
+    with useful work (its steps are many small kernels), so two runs in two threads take
+    1.1-1.3 runs' time: MRCLAM robot 2 (T 4179, P 100), two candidates back to back 6.9-7.1
+    s, the same two in two threads 3.8 s; Victoria Park (T 7230, 320 slots), two whole runs
+    29.1 s against 19.2 s; identical scores (docs/results.md, calibration_time). On an accelerator two calls share
     one device and would run one after the other."""
-    return 2 if jax.default_backend() == "cpu" and (os.cpu_count() or 1) >= 2 else 1
+    cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+             else os.cpu_count() or 1)
+    return 2 if jax.default_backend() == "cpu" and cores >= 2 else 1
 
 
-def check_workers(workers) -> int:
-    """``workers`` as a positive int (None: ``default_workers()``), else ValueError."""
+def check_workers(workers, name: str = "workers") -> int:
+    """``workers`` as a positive int (None: ``default_workers()``), else a ValueError that
+    calls it ``name``."""
     if workers is None:
         return default_workers()
     if isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 1:
-        raise ValueError(f"workers must be a positive integer (candidates scored at once) or "
-                         f"None for the default; got {workers!r}")
+        raise ValueError(f"{name} must be a positive integer (search candidates run at once) "
+                         f"or None for the default; got {workers!r}")
     return int(workers)
 
 
@@ -244,23 +246,26 @@ def walk_stage(scales, score, stop_at_first_drop: bool = True, workers: int = 1,
     (1 included); candidates not run get NaN and -1 (module docstring).
 
     ``workers``: when a candidate is needed, it and the next ``workers`` - 1 unscored ones of
-    its direction are scored at once, each in its own thread (``score`` must be thread-safe);
-    the walk then reads them in order, so a candidate scored ahead of a stop is not used and
-    reads NaN and -1 as if not run: the result is the same for every ``workers``, only the
-    time differs. ``known``: {scale: RunScore} already scored (not scored again; scales not
-    in the grid are ignored)."""
+    its direction are scored at once, each in its own thread (``score`` must be thread-safe),
+    and all of them finish before the walk goes on; the walk then reads them in order, so a
+    candidate scored ahead of a stop is not used and reads NaN and -1 as if not run, and an
+    error it raised is not raised: the result is the same for every ``workers``, only the
+    time (and the memory: ``workers`` runs alive at once) differs. The threads see JAX's
+    global settings, not a context manager of the calling thread (``jax.enable_x64`` and
+    the like are per thread): inside one, use ``workers=1``. ``known``: {scale: RunScore}
+    already scored (not scored again; scales not in the grid are ignored)."""
     scales = np.asarray(scales, np.float64)
     results = {int(np.flatnonzero(scales == scale)[0]): result
                for scale, result in (known or {}).items() if np.any(scales == scale)}
 
     def fetch(indices) -> None:  # score the first ``workers`` unscored of ``indices``
         todo = [index for index in indices if index not in results][:workers]
-        if len(todo) > 1:
-            with ThreadPoolExecutor(len(todo)) as pool:
-                scored = list(pool.map(lambda index: score(float(scales[index])), todo))
-        else:
-            scored = [score(float(scales[index])) for index in todo]
-        results.update(zip(todo, scored))
+        if len(todo) == 1:
+            results[todo[0]] = score(float(scales[todo[0]]))
+            return
+        with ThreadPoolExecutor(len(todo)) as pool:  # waits for every run to finish
+            futures = [pool.submit(score, float(scales[index])) for index in todo]
+        results.update(zip(todo, futures))  # a Future until the walk reads it
 
     used = set()
 
@@ -269,6 +274,8 @@ def walk_stage(scales, score, stop_at_first_drop: bool = True, workers: int = 1,
             fetch(walk[position:])
         used.add(walk[position])
         result = results[walk[position]]
+        if isinstance(result, Future):
+            result = results[walk[position]] = result.result()
         fair = result.dropped_births == 0 and np.isfinite(result.log_likelihood)
         return float(result.log_likelihood) if fair else -np.inf
 
@@ -289,34 +296,6 @@ def walk_stage(scales, score, stop_at_first_drop: bool = True, workers: int = 1,
         objective[index], dropped[index] = (results[index].log_likelihood,
                                             results[index].dropped_births)
     return objective, dropped
-
-
-def first_candidate(motion_scales, observation_scales) -> tuple[float, float] | None:
-    """The first candidate (s_m, s_o) ``search_noise_scales`` scores after EM's own x1: the
-    motion stage's first upward scale (else its first downward one), or, when the motion grid
-    is (1,), the observation stage's at s_m = 1; None when both grids are (1,)."""
-    for stage, scales in enumerate((check_scales("motion_scales", motion_scales),
-                                    check_scales("observation_scales", observation_scales))):
-        up, down = scales[scales > 1.0], scales[scales < 1.0]
-        if up.size or down.size:
-            scale = float(up.min() if up.size else down.max())
-            return (scale, 1.0) if stage == 0 else (1.0, scale)
-    return None
-
-
-class Speculation:
-    """``run_score`` of one candidate (``first_candidate`` of run ``best``'s settings) started
-    in a background thread while EM's filter runs its last iteration (``calibrate_params``).
-    The thread ends with its run; ``result()`` waits for it."""
-
-    def __init__(self, best: int, candidate: tuple[float, float], run):
-        self.best, self.candidate = best, candidate
-        pool = ThreadPoolExecutor(1)
-        self._future = pool.submit(run)
-        pool.shutdown(wait=False)
-
-    def result(self) -> RunScore:
-        return self._future.result()
 
 
 def describe_search(found: ScaleSearch) -> str:
@@ -364,8 +343,7 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
                         known_objective: float | None = None,
                         known_dropped: int | None = None,
                         stop_at_first_drop: bool = True,
-                        workers: int | None = None,
-                        known_scores=None) -> tuple[Params, ScaleSearch]:
+                        workers: int | None = None) -> tuple[Params, ScaleSearch]:
     """Multiply ``params``' motion and observation noise by the scales of highest filter log
     marginal likelihood (module docstring: coordinate ascent, motion first).
 
@@ -383,8 +361,6 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
         candidate.
       workers: candidates scored at once, each in its own thread (``walk_stage``; the same
         result for every value); None: ``default_workers()``.
-      known_scores: {(s_m, s_o): RunScore} of candidates already scored with ``key`` on
-        these inputs (``calibrate_params``' speculation), not run again.
     Returns:
       (scaled ``Params``, ``ScaleSearch``; a candidate not run has objective NaN and
       dropped -1). A stage whose candidates all score a non-finite value keeps 1, and so does
@@ -398,25 +374,22 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
                          f"{known_objective} and {known_dropped}")
     scored = {} if known_objective is None else {
         (1.0, 1.0): RunScore(float(known_objective), int(known_dropped))}
-    scored.update({(float(m), float(o)): RunScore(*score)
-                   for (m, o), score in (known_scores or {}).items()})
 
-    def score(motion: float, observation: float) -> RunScore:  # threads: distinct keys
+    def score(motion: float, observation: float) -> RunScore:  # one dict entry a thread
         scored[motion, observation] = run_score(
             config, key, scaled_noise(params, motion, observation), controls, observations,
             initial_pose)
         return scored[motion, observation]
 
-    def known(fixed: int, value: float) -> dict:  # a stage's candidates already run
-        return {pair[1 - fixed]: result for pair, result in scored.items()
-                if pair[fixed] == value}
+    def known(motion: float) -> dict:  # the stage's x1, when it has run
+        return {1.0: scored[motion, 1.0]} if (motion, 1.0) in scored else {}
 
     motion_objective, motion_dropped = walk_stage(
-        motion_scales, lambda m: score(m, 1.0), stop_at_first_drop, workers, known(1, 1.0))
+        motion_scales, lambda m: score(m, 1.0), stop_at_first_drop, workers, known(1.0))
     motion_scale = best_scale(motion_scales, motion_objective, motion_dropped)
     observation_objective, observation_dropped = walk_stage(
         observation_scales, lambda o: score(motion_scale, o), stop_at_first_drop, workers,
-        known(0, motion_scale))
+        known(motion_scale))
     observation_scale = best_scale(observation_scales, observation_objective,
                                    observation_dropped)
     return scaled_noise(params, motion_scale, observation_scale), ScaleSearch(

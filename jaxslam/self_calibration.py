@@ -64,10 +64,7 @@ for the motion groups that part is often the larger (docs/results.md, self_calib
 Cost: one filter run per iteration, at most ``iterations`` (4 of at most 5 on MRCLAM robot 1
 with ``patience``), plus the scale search's runs on the same compiled filter (at most 7 with the
 default grid, 6 when EM did not converge, fewer when a stage's score falls past its peak;
-on a CPU two at a time, in 1.1-1.3 runs' time: ``noise_scale.default_workers``; and when
-EM's next run is one after which it stops unless that run beats the best, the search's
-first candidate of the best run's settings runs beside it, ``_speculate``, and is used
-when EM does return those settings),
+on a CPU two at a time, in 1.1-1.3 runs' time: ``noise_scale.default_workers``),
 plus the smoother (0.15-0.35 of a run per iteration on MRCLAM robot 1 and on the simulated
 loop of ``benchmarks/calibration.py``), plus a few per cent for the rest. Between the filter
 runs the library's models run on the host in float64 on shapes fixed for the log
@@ -85,7 +82,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxslam import lineage, noise_scale, smoothing
+from jaxslam import lineage, smoothing
 from jaxslam.calibration_residuals import smoothed_residuals, typical_stds
 from jaxslam.detection_fit import sensor_update, single_share
 from jaxslam.filter import run_filter
@@ -421,41 +418,6 @@ def _stalled(objective, dropped, patience: int | None) -> bool:
     return len(objective) - 1 - _best_run(objective, dropped) >= patience
 
 
-def _speculation_target(objective, dropped, done: int, iterations: int,
-                        patience: int | None) -> int | None:
-    """The run whose settings EM returns if filter run ``done`` (1-based, about to start;
-    the runs so far scored objective (R,) and dropped (R,)) does not beat it and EM then
-    stops, as its last iteration or by ``_stalled``; None when EM would go on, or while no
-    run after the first has scored (the first never counts as best)."""
-    if len(objective) < 2:
-        return None
-    best = _best_run(objective, dropped)
-    after = (list(objective) + [-np.inf], list(dropped) + [0])  # a run that beats nothing
-    if _best_run(*after) != best:
-        return None
-    return best if done == iterations or _stalled(*after, patience) else None
-
-
-def _speculate(current, run_inputs, objective, dropped, done, iterations, patience,
-               evaluated, m_steps, scales):
-    """A ``noise_scale.Speculation`` of the scale search's first candidate of the settings EM
-    returns if run ``done`` does not beat them (``_speculation_target``), or ``current``
-    when there is no such run or it is already speculated on. run_inputs: (config, key,
-    controls, observations, initial_pose), the search's own."""
-    best = _speculation_target(objective, dropped, done, iterations, patience)
-    if best is None or (current is not None and current.best == best):
-        return current
-    source = m_steps[best - 1]  # m_steps[i] made the settings of filter run i + 1
-    candidate = noise_scale.first_candidate(scales if source.motion_fitted else (1.0,),
-                                            scales if source.observation_fitted else (1.0,))
-    if candidate is None:
-        return current
-    config, key, controls, observations, start = run_inputs
-    params = noise_scale.scaled_noise(evaluated[best], *candidate)
-    return noise_scale.Speculation(best, candidate, lambda: noise_scale.run_score(
-        config, key, params, controls, observations, start))
-
-
 def _fit_warnings(last: _MStep | None, steps: int) -> list[str]:
     out = []
     if last is None or not last.motion_fitted:
@@ -487,8 +449,7 @@ def _stalled_line(iteration: int, objective, dropped, patience: int) -> str:
 
 
 def _scale_search(config, key, params, controls, observations, start, scales, last: _MStep,
-                  progress, known_objective=None, known_dropped=None, workers=None,
-                  known_scores=None):
+                  progress, known_objective=None, known_dropped=None, workers=None):
     """``search_noise_scales`` over the groups EM fitted (an unfitted group's grid is (1,)):
     (params, ``ScaleSearch``, a clause for the verdict)."""
     unit = (1.0,)
@@ -496,8 +457,7 @@ def _scale_search(config, key, params, controls, observations, start, scales, la
         config, key, params, controls, observations, jnp.asarray(start, params.rot1_noise.dtype),
         motion_scales=scales if last.motion_fitted else unit,
         observation_scales=scales if last.observation_fitted else unit,
-        known_objective=known_objective, known_dropped=known_dropped, workers=workers,
-        known_scores=known_scores)
+        known_objective=known_objective, known_dropped=known_dropped, workers=workers)
     if progress is not None:
         progress(f"calibration: likelihood over noise scales: {describe_search(found)}")
     if found.motion_scale == 1.0 and found.observation_scale == 1.0:
@@ -576,8 +536,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
       search_workers: candidates of the scale search run at once, each in its own thread
         (the same choice for every value; ``noise_scale.walk_stage``). None:
         ``noise_scale.default_workers()``, 2 on a CPU with two or more cores, where two
-        runs in two threads take 1.1-1.3 runs' time. With more than 1, the search's first
-        candidate may also run beside EM's last filter run (module docstring, Cost).
+        runs in two threads take 1.1-1.3 runs' time.
       progress: optional callable(str) told of each iteration in one line.
     Returns:
       (params, info): the calibrated ``Params`` (dtype of ``params``) and ``CalibrationInfo``.
@@ -587,7 +546,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     log = _checked_log(controls, observations, initial_pose, iterations, tol)
     _check_patience(patience)
     scales = check_scales("scales", scales)
-    search_workers = check_workers(search_workers)
+    search_workers = check_workers(search_workers, "search_workers")
     motion_model = motion_model or config.motion_model
     params = starting_params(config) if params is None else params
     steps, dtype = len(log.controls), params.rot1_noise.dtype
@@ -604,14 +563,9 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     converged, stalled, last, m_steps = False, False, None, []
     controls = jnp.asarray(log.controls, dtype)
     start = jnp.asarray(log.start, dtype)
-    run_inputs = (config, key, controls, observations, start)
-    speculation = None  # the search's first candidate, run during EM's last filter run
     for done in range(1, iterations + 1):
         odometry = np.asarray(control_to_odometry(controls, params, motion_model), np.float64)
         typical.append(typical_stds(params, odometry, z_range))
-        if scale_search and search_workers > 1:
-            speculation = _speculate(speculation, run_inputs, objective, dropped, done,
-                                     iterations, patience, evaluated, m_steps, scales)
         final, trace = run_filter(config, key, params, controls, observations, start,
                                   record_lineage=True)
         objective.append(float(np.sum(np.asarray(trace.log_evidence))))
@@ -641,13 +595,10 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
             converged = True
             break
     chosen, known, source = "", (None, None), last  # source: the M-step behind ``params``
-    speculated = {}
     if not converged:
         best = _best_run(objective, dropped)
         source = m_steps[best - 1] if 1 <= best <= len(m_steps) else None
         params, known = evaluated[best], (objective[best], dropped[best])
-        if speculation is not None and speculation.best == best:
-            speculated = {speculation.candidate: speculation.result()}
         values = {name: _plain(getattr(params, name)) for name in values}
         kept = int(np.sum(np.asarray(dropped[1:]) == 0))
         among = (f", among the {kept} whose map never overflowed"
@@ -659,7 +610,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                                                  or source.observation_fitted):
         params, found, note = _scale_search(config, key, params, controls, observations,
                                             log.start, scales, source, progress, *known,
-                                            workers=search_workers, known_scores=speculated)
+                                            workers=search_workers)
         values.update({name: _plain(getattr(params, name)) for name in
                        (MOTION_FIELDS if source.motion_fitted else ())
                        + (OBSERVATION_FIELDS + ("new_landmark_log_offset",)

@@ -1,7 +1,7 @@
 """benchmarks/calibration.py's choice of logs: ``--only`` runs just the named ones, and a log
 whose data folder is missing is skipped with a line that names the option to give. The timings
 themselves are the script's own job (issue 17; docs/results.md, calibration_time): a real run
-takes from about 10 s (the simulated loop's calibration) to 8-15 minutes (Victoria Park's)."""
+takes from about 5 s (the simulated loop's calibration) to 4.5-5.5 minutes (Victoria Park's)."""
 
 
 def test_missing_data_folders_are_skipped_by_name(load_benchmark, tmp_path, capsys,

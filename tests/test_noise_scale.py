@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import functools
-import os
 import threading
 import types
 
@@ -349,15 +348,51 @@ def test_search_with_workers_equals_the_search_one_at_a_time():
     chex.assert_trees_all_equal(one, two)
 
 
+def test_walk_reads_known_scores_and_ignores_what_it_does_not_use():
+    """A known score is used without a run; a known scale outside the grid is ignored, and
+    one past the stop reads NaN and -1 like a candidate not run."""
+    table = {1.0: (5.0, 0), 2.0: (9.0, 0), 4.0: (7.0, 0), 8.0: (8.0, 0), 16.0: (1.0, 0)}
+    score, calls = _stub_scores(table)
+    known = {1.0: ns.RunScore(5.0, 0), 3.0: ns.RunScore(99.0, 0), 16.0: ns.RunScore(1.0, 0)}
+    objective, dropped = ns.walk_stage(GRID, score, workers=1, known=known)
+    assert calls == [2.0, 4.0]
+    np.testing.assert_array_equal(objective, [5.0, 9.0, 7.0, np.nan, np.nan])
+    np.testing.assert_array_equal(dropped, [0, 0, 0, -1, -1])
+
+
+def test_an_error_of_a_candidate_scored_ahead_of_the_stop_is_not_raised():
+    """With three workers x2, x4 and x8 are scored together, but the walk stops at x4: x8's
+    error is not the walk's (the one-at-a-time walk never runs it); an error of a candidate
+    the walk uses is raised."""
+    table = {1.0: (5.0, 0), 2.0: (9.0, 0), 4.0: (7.0, 0), 16.0: (1.0, 0)}
+
+    def score(scale):
+        if scale == 8.0:
+            raise MemoryError("out of memory")
+        return ns.RunScore(*table[scale])
+
+    objective, _ = ns.walk_stage(GRID, score, workers=3, known={1.0: ns.RunScore(5.0, 0)})
+    np.testing.assert_array_equal(objective, [5.0, 9.0, 7.0, np.nan, np.nan])
+    table[4.0] = (10.0, 0)  # now the walk goes on to x8
+    with pytest.raises(MemoryError, match="out of memory"):
+        ns.walk_stage(GRID, score, workers=3, known={1.0: ns.RunScore(5.0, 0)})
+
+
 @pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
 def test_bad_workers_are_refused_with_a_clear_error(bad):
-    with pytest.raises(ValueError, match="workers must be a positive integer"):
-        ns.check_workers(bad)
+    with pytest.raises(ValueError, match="search_workers must be a positive integer"):
+        ns.check_workers(bad, "search_workers")
 
 
-def test_default_workers_use_a_second_cpu_core():
-    expected = 2 if jax.default_backend() == "cpu" and (os.cpu_count() or 1) >= 2 else 1
+@pytest.mark.parametrize("backend, cores, expected", [
+    ("cpu", 1, 1), ("cpu", 2, 2), ("cpu", 16, 2), ("gpu", 16, 1), ("tpu", 2, 1)])
+def test_default_workers_use_a_second_cpu_core(monkeypatch, backend, cores, expected):
+    monkeypatch.setattr(ns.jax, "default_backend", lambda: backend)
+    monkeypatch.setattr(ns.os, "sched_getaffinity", lambda pid: set(range(cores)),
+                        raising=False)
     assert ns.default_workers() == expected and ns.check_workers(None) == expected
+    assert ns.check_workers(np.int64(3)) == 3
+
 
 def test_search_passes_the_stop_through_and_its_verdict_says_what_was_not_run(monkeypatch):
     """Scores stubbed: the likelihood falls at x2 in both stages, so the walk runs x1 and x2

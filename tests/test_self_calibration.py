@@ -3,13 +3,12 @@ from __future__ import annotations
 
 import functools
 
-import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxslam import calibrate, lineage, noise_scale, smoothing
+from jaxslam import calibrate, lineage, smoothing
 from jaxslam import self_calibration as sc
 from jaxslam.calibration_residuals import smoothed_residuals, typical_stds
 from jaxslam.detection_fit import GATE_LIMITS, detections
@@ -566,65 +565,3 @@ def test_bad_patience(bad):
 def test_good_patience_passes_the_check(good):
     sc._check_patience(good)  # raises on anything else (test_bad_patience)
 
-
-@pytest.mark.parametrize("objective, dropped, done, iterations, patience, expected", [
-    ([5.0], [0], 2, 5, 2, None),                          # no run after the first yet
-    ([5.0, 9.0], [0, 0], 3, 3, 2, 1),                     # EM's last run: run 1 unless beaten
-    ([5.0, 9.0], [0, 0], 3, 5, 2, None),                  # one fall would not stop EM
-    ([5.0, 9.0, 7.0], [0, 0, 0], 4, 5, 2, 1),             # a second fall would
-    ([5.0, 9.0, 7.0], [0, 0, 0], 4, 5, None, None),       # without patience only the cap
-    ([5.0, 9.0, 7.0], [0, 3, 0], 4, 5, 2, None),          # run 2 is best (1 overflowed)
-    ([5.0, 9.0, 7.0], [0, 3, 2], 4, 5, 2, 1),             # all overflowed: the score alone
-])
-def test_speculation_targets_the_run_em_returns_unless_beaten(objective, dropped, done,
-                                                              iterations, patience, expected):
-    assert sc._speculation_target(objective, dropped, done, iterations, patience) == expected
-
-
-@pytest.mark.parametrize("motion, observation, expected", [
-    ((1.0, 2.0, 4.0, 8.0), (1.0, 2.0, 4.0, 8.0), (2.0, 1.0)),
-    ((1.0, 0.5, 0.25), (1.0, 2.0), (0.5, 1.0)),           # no upward scale: the first down
-    ((1.0,), (1.0, 0.5, 4.0), (1.0, 4.0)),                # motion not searched
-    ((1.0,), (1.0,), None),
-])
-def test_first_candidate_is_the_walks_first_run_after_x1(motion, observation, expected):
-    assert noise_scale.first_candidate(motion, observation) == expected
-
-
-def test_speculated_candidate_is_used_and_changes_nothing(monkeypatch):
-    """EM's runs scripted to score 0, 10, 5, 4 (as above): before the fourth run EM would stop
-    unless it beat run 1, so with two workers the search's first candidate of run 1's
-    settings (motion x2) runs beside it; the run does not beat run 1, the search is handed
-    that score, and the calibration equals the one-worker calibration, which speculates
-    nothing."""
-    from jaxslam import filter as filter_module
-
-    handed = []
-    search = sc.search_noise_scales
-
-    def recorded_search(*args, **kwargs):
-        handed.append(dict(kwargs["known_scores"]))
-        return search(*args, **kwargs)
-
-    monkeypatch.setattr(sc, "search_noise_scales", recorded_search)
-    controls, obs, poses = _log()
-    results = []
-    for workers in (1, 2):
-        scripted = iter([0.0, 10.0, 5.0, 4.0])
-
-        def scored_run(*args, _scripted=scripted, **kwargs):
-            final, trace = filter_module.run_filter(*args, **kwargs)
-            evidence = jnp.zeros_like(trace.log_evidence).at[0].set(next(_scripted))
-            return final, trace._replace(log_evidence=evidence)
-
-        monkeypatch.setattr(sc, "run_filter", scored_run)
-        results.append(sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs,
-                                           poses[0], iterations=5, tol=1e-9,
-                                           search_workers=workers))
-    assert handed[0] == {} and list(handed[1]) == [(2.0, 1.0)]
-    (params_one, info_one), (params_two, info_two) = results
-    assert info_two.noise_scales.motion_objective[1] == handed[1][2.0, 1.0].log_likelihood
-    assert info_one.iterations == info_two.iterations == 4
-    chex.assert_trees_all_equal(params_one, params_two)
-    chex.assert_trees_all_equal(info_one.noise_scales, info_two.noise_scales)
-    assert info_one.verdict == info_two.verdict
