@@ -534,8 +534,9 @@ def test_calibration_print_divides_the_search_scale_out(capsys):
 
 
 def test_em_patience_option_reaches_the_calibration():
-    """``--em-patience N`` is calibrate_params' patience, 0 is None (no early stop); a
-    negative count is refused with a message naming the flag."""
+    """``--em-patience N`` is calibrate_params' patience, 0 is None (no early stop);
+    ``--search-workers N`` its search_workers (absent: None, the default); a negative
+    patience or a worker count below 1 is refused with a message naming the flag."""
     import argparse
 
     from jaxslam.cli.common import UsageError
@@ -546,8 +547,13 @@ def test_em_patience_option_reaches_the_calibration():
     for command in (["calibrate", "--data", "x.npz", "--out", "p.toml"], ["run", "--data", "x.npz"]):
         assert _calibration_options(parser.parse_args(command))["patience"] == 2
         given = parser.parse_args(command + ["--em-patience", "3"])
-        assert _calibration_options(given) == {"scale_search": True, "patience": 3}
+        assert _calibration_options(given) == {"scale_search": True, "patience": 3,
+                                               "search_workers": None}
         assert _calibration_options(parser.parse_args(command + ["--em-patience", "0"]))[
             "patience"] is None
+        assert _calibration_options(parser.parse_args(command + ["--search-workers", "1"]))[
+            "search_workers"] == 1
     with pytest.raises(UsageError, match="--em-patience must be 0"):
         _calibration_options(argparse.Namespace(em_patience=-1, no_scale_search=False))
+    with pytest.raises(UsageError, match="--search-workers must be a positive number"):
+        _calibration_options(argparse.Namespace(em_patience=2, search_workers=0))

@@ -259,13 +259,17 @@ def _filter_log(args, log):
 
 def _calibration_options(args) -> dict:
     """``calibrate_params`` keywords from the command line (``--no-scale-search``,
-    ``--em-patience N``, 0 for none)."""
+    ``--em-patience N``, 0 for none; ``--search-workers N``, absent for the default)."""
     patience = getattr(args, "em_patience", 2)
     if patience < 0:
         raise UsageError(f"--em-patience must be 0 (no early stop) or a positive number "
                          f"of filter runs; got {patience}")
+    workers = getattr(args, "search_workers", None)
+    if workers is not None and workers < 1:
+        raise UsageError(f"--search-workers must be a positive number of filter runs at "
+                         f"once; got {workers}")
     return {"scale_search": not getattr(args, "no_scale_search", False),
-            "patience": patience or None}
+            "patience": patience or None, "search_workers": workers}
 
 
 def cmd_calibrate(args) -> int:

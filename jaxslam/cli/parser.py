@@ -118,6 +118,11 @@ def _add_no_scale_search(parser, prefix: str = "") -> None:
                              "have not beaten the best log marginal likelihood before them, "
                              "and keep that best run's settings; 0: run until the noise stops "
                              "moving or 5 iterations (default: 2)")
+    parser.add_argument("--search-workers", type=int, default=None, metavar="N",
+                        help=f"{prefix}filter runs of the noise-scale search run at once, each "
+                             "in its own thread; the same choice for every N, only the time "
+                             "and memory differ (default: 2 on a CPU with two or more cores, "
+                             "else 1)")
 
 
 def _add_calibrate(sub) -> None:
