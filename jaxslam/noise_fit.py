@@ -331,6 +331,13 @@ def group_relative_errors(res: Residuals, used: np.ndarray, motion: bool,
     return out
 
 
+def measured_radii(radius, valid) -> np.ndarray:
+    """(T, K) bool: valid observations whose radius was measured (finite and > 0; otherwise
+    "no radius", as ``sanitize`` reads it). radius, valid: (T, K)."""
+    radius = np.asarray(radius, np.float64)
+    return np.asarray(valid, bool) & np.isfinite(radius) & (radius > 0.0)
+
+
 def radius_noise_from_history(ids, radius, valid, min_sightings: int = 3,
                               quantile: float = TAIL_QUANTILE) -> tuple[float, int]:
     """Std [m] of one detected trunk radius from the scatter within each tree, no ground truth.
@@ -355,10 +362,8 @@ def radius_noise_from_history(ids, radius, valid, min_sightings: int = 3,
     """
     if quantile not in CHI2_1DOF:
         raise ValueError(f"quantile must be one of {sorted(CHI2_1DOF)}; got {quantile!r}")
-    radius = np.asarray(radius, np.float64)
-    measured = np.asarray(valid, bool) & np.isfinite(radius) & (radius > 0.0)
-    ids = np.where(measured, np.asarray(ids), -1).ravel()
-    radius = radius.ravel()
+    ids = np.where(measured_radii(radius, valid), np.asarray(ids), -1).ravel()
+    radius = np.asarray(radius, np.float64).ravel()
     keep = ids >= 0
     ids, radius = ids[keep], radius[keep]
     if ids.size == 0:

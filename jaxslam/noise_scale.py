@@ -219,8 +219,8 @@ def default_workers() -> int:
     with useful work (its steps are many small kernels), so two runs in two threads take
     1.1-1.3 runs' time: MRCLAM robot 2 (T 4179, P 100), two candidates back to back 6.9-7.1
     s, the same two in two threads 3.8 s; Victoria Park (T 7230, 320 slots), two whole runs
-    29.1 s against 19.2 s; identical scores (docs/results.md, calibration_time). On an accelerator two calls share
-    one device and would run one after the other."""
+    29.1 s against 19.2 s; identical scores (docs/results.md, calibration_time). On an
+    accelerator two calls share one device and would run one after the other."""
     cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
              else os.cpu_count() or 1)
     return 2 if jax.default_backend() == "cpu" and cores >= 2 else 1

@@ -116,15 +116,13 @@ def unused_radius_hint(history: lineage.LineagePath, obs, params: Params) -> tup
     (``noise_fit.radius_noise_from_history``: the std that covers 95 % of it) as a value to
     try, and {"radius_scatter": that std} for the run's values. ([], {}) otherwise, or when
     no landmark was seen often enough to measure the scatter."""
-    from jaxslam.noise_fit import radius_noise_from_history
+    from jaxslam.noise_fit import measured_radii, radius_noise_from_history
 
-    valid = np.asarray(obs.valid, bool)
-    radius = np.asarray(obs.radius, np.float64)
-    measured = valid & np.isfinite(radius) & (radius > 0.0)
+    measured = measured_radii(obs.radius, obs.valid)
     if float(np.asarray(params.radius_noise)) > 0.0 or not measured.any():
         return [], {}
     ids, _ = lineage.landmark_identities(history.match, history.birth_slot)
-    std, used = radius_noise_from_history(np.asarray(ids), radius, valid)
+    std, used = radius_noise_from_history(np.asarray(ids), obs.radius, obs.valid)
     if not np.isfinite(std) or std <= 0.0:
         return [], {}
     return [f"{int(measured.sum())} observations carry a trunk radius, but the radius takes no "

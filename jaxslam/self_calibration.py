@@ -451,10 +451,11 @@ def _stalled_line(iteration: int, objective, dropped, patience: int) -> str:
 def _scale_search(config, key, params, controls, observations, start, scales, last: _MStep,
                   progress, known_objective=None, known_dropped=None, workers=None):
     """``search_noise_scales`` over the groups EM fitted (an unfitted group's grid is (1,)):
-    (params, ``ScaleSearch``, a clause for the verdict)."""
+    (params, ``ScaleSearch``, a clause for the verdict). start: (3,) EM's runs' start pose
+    (their dtype), so the search's runs are EM's compiled program."""
     unit = (1.0,)
     params, found = search_noise_scales(
-        config, key, params, controls, observations, jnp.asarray(start, params.rot1_noise.dtype),
+        config, key, params, controls, observations, start,
         motion_scales=scales if last.motion_fitted else unit,
         observation_scales=scales if last.observation_fitted else unit,
         known_objective=known_objective, known_dropped=known_dropped, workers=workers)
@@ -609,7 +610,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     if scale_search and source is not None and (source.motion_fitted
                                                  or source.observation_fitted):
         params, found, note = _scale_search(config, key, params, controls, observations,
-                                            log.start, scales, source, progress, *known,
+                                            start, scales, source, progress, *known,
                                             workers=search_workers)
         values.update({name: _plain(getattr(params, name)) for name in
                        (MOTION_FIELDS if source.motion_fitted else ())
