@@ -512,6 +512,9 @@ def add_regime_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--first", type=int, default=None,
                         help="use only the first N of the --runs logs")
     parser.add_argument("--particles", type=int, default=20)
+    parser.add_argument("--proposal", default="default",
+                        help="the filter: a proposal_study name, optionally with :field=value "
+                             "overrides (e.g. \"default:proposal='mixture',mixture_ratio=0.5\")")
     parser.add_argument("--chunk", type=int, default=250, help="filter runs per vmap chunk")
     parser.add_argument("--steps", type=int, default=None,
                         help="keep only the first N steps of each log (tests)")
@@ -538,6 +541,10 @@ def regime_histories(args: argparse.Namespace):
     per_forest = args.runs // args.forests
     if first % per_forest or not 0 < first <= args.runs:
         raise SystemExit(f"--first must be a multiple of runs / forests = {per_forest}")
+    proposal_name = getattr(args, "proposal", "default")
+    if getattr(args, "check", False) and proposal_name != "default":
+        raise SystemExit("--check compares with information_floor's default filter; it cannot "
+                         f"check --proposal {proposal_name!r}")
     chunk = min(args.chunk, first)
     if first % chunk:
         raise SystemExit(f"{first} logs must be a multiple of the chunk {chunk}")
@@ -548,7 +555,7 @@ def regime_histories(args: argparse.Namespace):
     if args.steps is not None:
         controls, truth = controls[:, :args.steps], truth[:, :args.steps + 1]
         obs = jax.tree.map(lambda a: a[:, :args.steps], obs)
-    fields, param_fields = proposal_settings("default")
+    fields, param_fields = proposal_settings(proposal_name)
     params = truth_params._replace(**{k: jnp.asarray(v, jnp.float32)
                                       for k, v in param_fields.items()})
     config = FilterConfig(num_particles=args.particles, max_landmarks=96, max_obs=12, **fields)
@@ -557,8 +564,9 @@ def regime_histories(args: argparse.Namespace):
     online = position_error(final, truth[:, -1])
     print(f"filter with lineage: compile {compile_s:.0f} s, run {run_s:.0f} s; online > 1 m "
           f"{np.mean(online > 1):.3f}", flush=True)
-    notes = [f"Filter P = {args.particles} with lineage: compile {compile_s:.0f} s, run "
-             f"{run_s:.0f} s ({first * controls.shape[1] / run_s:.3g} run-steps/s, loaded)."]
+    notes = [f"Filter {proposal_name}, P = {args.particles}, with lineage: compile "
+             f"{compile_s:.0f} s, run {run_s:.0f} s ({first * controls.shape[1] / run_s:.3g} "
+             "run-steps/s, loaded)."]
     if args.check:
         reference, _, _ = filter_errors(args.particles, params, key_filters,
                                         controls, obs, truth, args.runs, chunk)

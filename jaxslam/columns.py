@@ -22,6 +22,7 @@ CONFIG_UNITS = {
     "filter.match_pose_uncertainty": _NONE, "filter.anchor_empty_map": _NONE,
     "filter.associate_at_sample": _NONE, "filter.burst_proposal": _NONE,
     "filter.burst_turn_pieces": _COUNT, "filter.burst_turn_span": _NONE,
+    "filter.proposal_iterations": _COUNT,
     "scenario.forest": _NONE, "scenario.num_trees": _COUNT, "scenario.size": "m",
     "scenario.path": _NONE, "scenario.num_steps": _COUNT, "scenario.step_length": "m",
     "scenario.max_range": "m", "scenario.observation_source": _NONE,

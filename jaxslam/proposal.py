@@ -9,7 +9,9 @@ prediction x_hat and samples from
 
 where Sigma_u = J diag(sigma_odometry^2) J^T is the motion noise mapped to the pose,
 Hx_k = dh/dx at x_hat, S_k the innovation covariance of landmark m(k), nu_k = z_k - h(x_hat, m).
-Without any match it falls back to the motion model.
+Without any match it falls back to the motion model. ``relinearised_proposal`` repeats the
+solve with h linearised at the previous mean (Gauss-Newton on the pose posterior's mode, the
+association held), for priors wide enough that x_hat is a poor linearisation point.
 
 The mixture draws each particle from q_obs with probability phi and from p_motion otherwise,
 and the importance weight is corrected by
@@ -29,7 +31,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxslam.ekf import PredictedMeasurement
+from jaxslam.ekf import PredictedMeasurement, predict_measurements
 from jaxslam.geometry import LOG_2PI, wrap_angle
 from jaxslam.motion import (apply_odometry, burst_variance_factor, control_to_odometry,
                             motion_log_density, odometry_std, predict_pose)
@@ -145,13 +147,25 @@ def pose_jitter(cov):
     return _POSE_JITTER_EPS * eps * jnp.maximum(cov[0, 0], cov[1, 1]) + _POSE_JITTER_ABSOLUTE
 
 
-def observation_proposal(predicted_pose, pose_cov, z, match, predicted: PredictedMeasurement):
+def observation_proposal(predicted_pose, pose_cov, z, match, predicted: PredictedMeasurement,
+                         linearization_pose=None):
     """FastSLAM 2.0 Gaussian (module docstring) from the matched observations.
+
+    With ``linearization_pose`` x_l (a Gauss-Newton step of the pose posterior's mode,
+    started from x_l instead of x_hat), h is linearised at x_l and the innovation is the
+    linear model's about the prior mean,
+
+        nu_k = z_k - h_k(x_l) - Hx_k (x_hat - x_l),
+
+    so the formulas of the module docstring stand with Hx_k, S_k at x_l; x_l = x_hat is
+    the published proposal.
 
     Args:
       predicted_pose: (3,) x_hat; pose_cov: (3, 3) Sigma_u; z: (K, 2);
       match: (K,) int32 row of ``predicted`` matched by each observation, or -1;
-      predicted: at x_hat, (N,) fields (the particle's landmarks, or a window of them).
+      predicted: at x_l (x_hat when not given), (N,) fields (the particle's landmarks, or a
+        window of them, or the K matched ones).
+      linearization_pose: (3,) x_l, or None for x_hat.
     """
     matched = match >= 0
     slot = jnp.clip(match, 0, predicted.range.shape[0] - 1)
@@ -167,6 +181,10 @@ def observation_proposal(predicted_pose, pose_cov, z, match, predicted: Predicte
                        jnp.stack([p.i_rb, p.i_bb], -1)], -2) * weight[:, None, None]
     info_obs = jnp.einsum("kai,kab,kbj->ij", hx, s_inv, hx)
     nu = jnp.stack([nu_range, nu_bearing], -1)
+    if linearization_pose is not None:
+        offset = predicted_pose - linearization_pose
+        offset = offset.at[2].set(wrap_angle(offset[2]))
+        nu = nu - jnp.einsum("kai,i->ka", hx, offset) * weight[:, None]
     info_vec = jnp.einsum("kai,kab,kb->i", hx, s_inv, nu)
     pose_info, pose_log_det = spd_inverse3(pose_cov)
     precision = pose_info + info_obs
@@ -180,6 +198,33 @@ def observation_proposal(predicted_pose, pose_cov, z, match, predicted: Predicte
     log_det = (jnp.sum(jnp.where(matched, p.log_det, 0.0)) + pose_log_det + precision_log_det)
     log_evidence = -0.5 * (quad + log_det) - jnp.sum(weight) * LOG_2PI
     return ObservationProposal(mean, cholesky3(cov), jnp.any(matched), log_evidence)
+
+
+def relinearised_proposal(first: ObservationProposal, predicted_pose, pose_cov, z, matched,
+                          landmark_mean, landmark_cov, params: Params, iterations: int):
+    """``first`` (the FastSLAM 2.0 Gaussian linearised at x_hat) relinearised ``iterations``
+    times at its own mean: Gauss-Newton on the mode of p(x | x_prev, u) prod_k p(z_k | x, m_k)
+    with the association held fixed,
+
+        x_{i+1} = mean of ``observation_proposal``(x_hat, Sigma_u, linearization_pose = x_i),
+
+    x_0 the mean of ``first``; Hx_k, S_k and h_k are evaluated at x_i for the matched
+    landmarks only. The last solve's mean and covariance are the proposal (the importance
+    weight stays exact for any Gaussian: ``mixture_log_correction``); ``has_match`` is
+    ``first``'s.
+
+    Args:
+      first: at x_hat; predicted_pose: (3,) x_hat; pose_cov: (3, 3) Sigma_u; z: (K, 2);
+      matched: (K,) bool; landmark_mean: (K, 2), landmark_cov: (K, 3) components, row k the
+        landmark observation k matched (ignored where not matched); iterations: static >= 0.
+    """
+    local = jnp.where(matched, jnp.arange(matched.shape[0]), -1)
+    gaussian = first
+    for _ in range(iterations):
+        at_mean = predict_measurements(gaussian.mean, landmark_mean, landmark_cov, params)
+        gaussian = observation_proposal(predicted_pose, pose_cov, z, local, at_mean,
+                                        linearization_pose=gaussian.mean)
+    return gaussian._replace(has_match=first.has_match)
 
 
 def stack_proposals(pieces) -> ObservationProposal:
@@ -311,6 +356,7 @@ __all__ = [
     "motion_pose_covariance",
     "observation_proposal",
     "predict_pose",
+    "relinearised_proposal",
     "sample_gaussian_pose",
     "stack_proposals",
     "turn_pieces",

@@ -90,8 +90,7 @@ def _burst_pieces(config, params, particle: Particles, x_hat, control, obs):
     def piece(centre, cov):
         found = associate(config, params, particle, centre, obs,
                           cov if config.match_pose_uncertainty else None)
-        gaussian = proposal.observation_proposal(centre, cov, obs.z, found.local_match,
-                                                 found.predicted)
+        gaussian = _relinearised(config, params, particle, centre, cov, obs, found)
         unexplained = jnp.sum(jnp.where(obs.valid & (found.match < 0),
                                         ekf.unexplained_log_likelihood(obs.z[:, 0], params),
                                         0.0))
@@ -127,8 +126,21 @@ def _observation_gaussian(config, params, particle: Particles, x_hat, control, o
                                                config.motion_model)
     found = associate(config, params, particle, x_hat, obs,
                       pose_cov if config.match_pose_uncertainty else None)
-    return proposal.observation_proposal(x_hat, pose_cov, obs.z, found.local_match,
-                                         found.predicted), found
+    return _relinearised(config, params, particle, x_hat, pose_cov, obs, found), found
+
+
+def _relinearised(config, params, particle: Particles, x_hat, pose_cov, obs, found):
+    """The FastSLAM 2.0 Gaussian of one prior piece (centre x_hat (3,), Sigma_u (3, 3)) with
+    the association ``found`` made at x_hat, relinearised ``config.proposal_iterations``
+    times at its own mean (``proposal.relinearised_proposal``)."""
+    gaussian = proposal.observation_proposal(x_hat, pose_cov, obs.z, found.local_match,
+                                             found.predicted)
+    if config.proposal_iterations == 0:
+        return gaussian
+    rows = jnp.clip(found.match, 0)
+    return proposal.relinearised_proposal(
+        gaussian, x_hat, pose_cov, obs.z, found.match >= 0, particle.landmark_mean[rows],
+        particle.landmark_cov[rows], params, config.proposal_iterations)
 
 
 def propose(config: FilterConfig, key, params: Params, particles: Particles, control,

@@ -226,11 +226,13 @@ def unexplained_log_likelihood(z_range, params):
 
 
 def proposal(pose_prev, odometry, landmark_means, landmark_covs, z, match, params,
-             relinearize=False, pose_jitter=POSE_JITTER):
+             relinearize=False, pose_jitter=POSE_JITTER, linearization_pose=None):
     """The FastSLAM 2.0 Gaussian of ONE particle.
 
     Args: pose_prev (3,); odometry (3,) measured (r1, t, r2); landmark_means (N, 2);
-    landmark_covs (N, 2, 2); z (K, 2); match (K,) landmark index or -1.
+    landmark_covs (N, 2, 2); z (K, 2); match (K,) landmark index or -1;
+    linearization_pose: (3,) x_l where every h, Hx and Q is evaluated instead of x_hat (the
+    prior stays N(x_hat, R)); ignored with ``relinearize``.
     Returns a dict: x_hat, R, mean, cov, has_match.
     """
     x_hat = apply_odometry(pose_prev, odometry)
@@ -241,7 +243,8 @@ def proposal(pose_prev, odometry, landmark_means, landmark_covs, z, match, param
         if n < 0:
             continue
         has_match = True
-        x_lin = mean if relinearize else x_hat
+        x_lin = mean if relinearize else (x_hat if linearization_pose is None
+                                          else np.asarray(linearization_pose, float))
         z_hat, hx, _, q = landmark_innovation_cov(x_lin, landmark_means[n], landmark_covs[n],
                                                   params)
         s = hx @ cov @ hx.T + q
@@ -252,6 +255,22 @@ def proposal(pose_prev, odometry, landmark_means, landmark_covs, z, match, param
         cov = 0.5 * (cov + cov.T)
     mean[2] = wrap(mean[2])
     return dict(x_hat=x_hat, R=cov_u, mean=mean, cov=cov, has_match=has_match)
+
+
+def gauss_newton_proposal(pose_prev, odometry, landmark_means, landmark_covs, z, match,
+                          params, iterations, pose_jitter=POSE_JITTER):
+    """The FastSLAM 2.0 Gaussian relinearised ``iterations`` times at its own mean (batch
+    Gauss-Newton on the pose posterior's mode, the association fixed): each round runs the
+    sequential covariance-form fusion of ``proposal`` from the prior N(x_hat, R) with every
+    observation linearised at the previous round's mean. ``iterations`` = 0 is ``proposal``.
+    """
+    prop = proposal(pose_prev, odometry, landmark_means, landmark_covs, z, match, params,
+                    pose_jitter=pose_jitter)
+    for _ in range(iterations):
+        again = proposal(pose_prev, odometry, landmark_means, landmark_covs, z, match, params,
+                         pose_jitter=pose_jitter, linearization_pose=prop["mean"])
+        prop = dict(again, has_match=prop["has_match"])
+    return prop
 
 
 def sample_pose(pose_prev, odometry, prop, eps, params):

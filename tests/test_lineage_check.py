@@ -172,3 +172,18 @@ def test_script_reproduces_information_floor_bit_for_bit(tmp_path):
     (no lineage, same keys and chunk) exactly."""
     text, _ = run_tiny(tmp_path / "tiny", "--check")
     assert "bit for bit in 2 / 2 logs" in text
+
+
+def test_proposal_option_runs_another_filter(tmp_path):
+    """``--proposal motion`` runs the seed paper's filter on the same logs: the per-log online
+    errors differ from the default filter's (a filter that ignored the option would give the
+    same numbers), and the notes name the filter."""
+    text, motion = run_tiny(tmp_path / "motion", "--proposal", "motion")
+    _, default = run_tiny(tmp_path / "default")
+    assert "Filter motion, P = 4" in text
+    assert not np.array_equal(motion["online"], default["online"])
+
+
+def test_check_refuses_another_proposal(tmp_path):
+    with pytest.raises(SystemExit, match="cannot check --proposal"):
+        run_tiny(tmp_path / "x", "--check", "--proposal", "motion")

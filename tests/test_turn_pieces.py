@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from jaxslam import proposal
-from jaxslam.filter import _init, _step
+from jaxslam.filter import _step
 from jaxslam.step_propose import propose
 from jaxslam.types import FilterConfig, Observations, default_params
+from mapped_state import mapped_state  # tests/ is on sys.path
 
 POSE = np.array([1.0, -2.0, 0.4])
 CONTROL = np.array([0.05, 0.5, -0.02])  # odometry (rot1, trans, rot2)
@@ -114,18 +115,7 @@ def _far_turn_case(turn_pieces):
                             rot2_noise=(0.0, 0.0, 0.01), range_noise=(0.0, 0.01),
                             bearing_noise=(0.0, 0.002), range_std_floor=0.0,
                             bearing_std_floor=0.0)
-    state = _init(config, jnp.zeros(3))
-    slots = np.zeros((8, 2))
-    slots[:4] = TREES
-    cov = np.tile([1e-4, 0.0, 1e-4], (8, 1))
-    active = np.arange(8) < 4
-    particles = state.particles._replace(
-        landmark_mean=jnp.broadcast_to(jnp.asarray(slots, jnp.float32), (64, 8, 2)),
-        landmark_cov=jnp.broadcast_to(jnp.asarray(cov, jnp.float32), (64, 8, 3)),
-        active=jnp.broadcast_to(jnp.asarray(active), (64, 8)),
-        existence=jnp.broadcast_to(jnp.where(active, 3.0, 0.0).astype(jnp.float32), (64, 8)),
-        observation_count=jnp.broadcast_to(jnp.where(active, 5, 0).astype(jnp.int32), (64, 8)))
-    state = state._replace(particles=particles)
+    state = mapped_state(config, TREES)
     truth = np.array([0.5 * np.cos(0.52), 0.5 * np.sin(0.52), 0.52])
     d = TREES - truth[:2]
     z = np.stack([np.hypot(d[:, 0], d[:, 1]),

@@ -80,6 +80,13 @@ class FilterConfig:
         its own pose, so a turn far larger than the measured one is still proposed where the
         observations put it. Costs 2n + 1 more associations and proposals per particle.
       burst_turn_span: the pieces cover +-span tau (in burst standard deviations).
+      proposal_iterations: n >= 0 Gauss-Newton relinearisations of each FastSLAM 2.0
+        Gaussian (``proposal.relinearised_proposal``): the matched landmarks are predicted
+        again at the proposal's mean and the Gaussian is solved again, keeping the
+        association made at x_hat. 0 (default) linearises at x_hat only (FastSLAM 2.0 as
+        published); on held-out logs with 6x Table 1 odometry and large turns one round
+        changed the divergence by less than its interval (docs/results.md, proposal_study).
+        Costs n predictions of the K matched landmarks per piece.
     """
 
     num_particles: int = 100
@@ -99,6 +106,7 @@ class FilterConfig:
     burst_proposal: bool = True
     burst_turn_pieces: int = 0
     burst_turn_span: float = 4.0
+    proposal_iterations: int = 0
 
     def __post_init__(self):
         for name in ("num_particles", "max_landmarks", "max_obs"):
@@ -119,6 +127,11 @@ class FilterConfig:
             raise ValueError(
                 f"FilterConfig.burst_turn_pieces={self.burst_turn_pieces!r} is invalid; "
                 "expected an integer >= 0 (0: no turn pieces)")
+        if (not isinstance(self.proposal_iterations, (int, np.integer))
+                or isinstance(self.proposal_iterations, bool) or self.proposal_iterations < 0):
+            raise ValueError(
+                f"FilterConfig.proposal_iterations={self.proposal_iterations!r} is invalid; "
+                "expected an integer >= 0 (0: linearise at the motion prediction only)")
         if (isinstance(self.burst_turn_span, bool)
                 or not isinstance(self.burst_turn_span, (int, float, np.floating))
                 or not self.burst_turn_span > 0 or not np.isfinite(self.burst_turn_span)):
