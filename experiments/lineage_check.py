@@ -541,8 +541,8 @@ def regime_histories(args: argparse.Namespace):
     per_forest = args.runs // args.forests
     if first % per_forest or not 0 < first <= args.runs:
         raise SystemExit(f"--first must be a multiple of runs / forests = {per_forest}")
-    proposal_name = getattr(args, "proposal", "default")
-    if getattr(args, "check", False) and proposal_name != "default":
+    proposal_name = args.proposal
+    if args.check and proposal_name != "default":
         raise SystemExit("--check compares with information_floor's default filter; it cannot "
                          f"check --proposal {proposal_name!r}")
     chunk = min(args.chunk, first)

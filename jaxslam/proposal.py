@@ -151,8 +151,8 @@ def observation_proposal(predicted_pose, pose_cov, z, match, predicted: Predicte
                          linearization_pose=None):
     """FastSLAM 2.0 Gaussian (module docstring) from the matched observations.
 
-    With ``linearization_pose`` x_l (a Gauss-Newton step of the pose posterior's mode,
-    started from x_l instead of x_hat), h is linearised at x_l and the innovation is the
+    With ``linearization_pose`` x_l, h is linearised at x_l instead of x_hat (one
+    Gauss-Newton step towards the pose posterior's mode from x_l) and the innovation is the
     linear model's about the prior mean,
 
         nu_k = z_k - h_k(x_l) - Hx_k (x_hat - x_l),
@@ -201,7 +201,7 @@ def observation_proposal(predicted_pose, pose_cov, z, match, predicted: Predicte
 
 
 def relinearised_proposal(first: ObservationProposal, predicted_pose, pose_cov, z, matched,
-                          landmark_mean, landmark_cov, params: Params, iterations: int):
+                          landmark_mean, landmark_cov, *, params: Params, iterations: int):
     """``first`` (the FastSLAM 2.0 Gaussian linearised at x_hat) relinearised ``iterations``
     times at its own mean: Gauss-Newton on the mode of p(x | x_prev, u) prod_k p(z_k | x, m_k)
     with the association held fixed,
@@ -209,9 +209,10 @@ def relinearised_proposal(first: ObservationProposal, predicted_pose, pose_cov, 
         x_{i+1} = mean of ``observation_proposal``(x_hat, Sigma_u, linearization_pose = x_i),
 
     x_0 the mean of ``first``; Hx_k, S_k and h_k are evaluated at x_i for the matched
-    landmarks only. The last solve's mean and covariance are the proposal (the importance
-    weight stays exact for any Gaussian: ``mixture_log_correction``); ``has_match`` is
-    ``first``'s.
+    landmarks only. The last solve's mean, covariance and evidence are the proposal (the
+    importance weight stays exact for any Gaussian: ``mixture_log_correction``); its
+    ``has_match`` (any observation matched) is ``first``'s, as ``matched`` marks the rows
+    ``first`` used. No damping: a round that overshoots costs proposal efficiency only.
 
     Args:
       first: at x_hat; predicted_pose: (3,) x_hat; pose_cov: (3, 3) Sigma_u; z: (K, 2);
@@ -224,7 +225,7 @@ def relinearised_proposal(first: ObservationProposal, predicted_pose, pose_cov, 
         at_mean = predict_measurements(gaussian.mean, landmark_mean, landmark_cov, params)
         gaussian = observation_proposal(predicted_pose, pose_cov, z, local, at_mean,
                                         linearization_pose=gaussian.mean)
-    return gaussian._replace(has_match=first.has_match)
+    return gaussian
 
 
 def stack_proposals(pieces) -> ObservationProposal:

@@ -140,7 +140,7 @@ def _relinearised(config, params, particle: Particles, x_hat, pose_cov, obs, fou
     rows = jnp.clip(found.match, 0)
     return proposal.relinearised_proposal(
         gaussian, x_hat, pose_cov, obs.z, found.match >= 0, particle.landmark_mean[rows],
-        particle.landmark_cov[rows], params, config.proposal_iterations)
+        particle.landmark_cov[rows], params=params, iterations=config.proposal_iterations)
 
 
 def propose(config: FilterConfig, key, params: Params, particles: Particles, control,

@@ -46,6 +46,7 @@ Proposal (FastSLAM 2.0, Probabilistic Robotics Table 13.2, generalised to severa
   form, each with the current Gaussian as its prior:
       S_k = Hx_k Sigma Hx_k^T + Q_k,  K_k = Sigma Hx_k^T S_k^-1,
       mu <- mu + K_k (z_k - h(x_lin, m_k) - Hx_k (mu - x_lin)),  Sigma <- (I - K_k Hx_k) Sigma
+  (the heading of mu - x_lin wrapped)
   with ``relinearize=False`` (default): x_lin = x_hat for every k, Hx_k, Q_k and h at x_hat.
   Then the result is EXACTLY the batch information form jaxslam writes,
       Sigma = (R^-1 + sum_k Hx_k^T Q_k^-1 Hx_k)^-1,
@@ -249,7 +250,9 @@ def proposal(pose_prev, odometry, landmark_means, landmark_covs, z, match, param
                                                   params)
         s = hx @ cov @ hx.T + q
         gain = cov @ hx.T @ np.linalg.inv(s)
-        nu = innovation(z[k], z_hat) - hx @ (mean - x_lin)
+        offset = mean - x_lin
+        offset[2] = wrap(offset[2])
+        nu = innovation(z[k], z_hat) - hx @ offset
         mean = mean + gain @ nu
         cov = (np.eye(3) - gain @ hx) @ cov
         cov = 0.5 * (cov + cov.T)

@@ -420,6 +420,21 @@ def test_relinearisation_difference_is_small(ref_params):
     assert worst < 0.2, worst
 
 
+def rotated_to(case, heading):
+    """``case`` with the whole world turned about the origin so that x_hat's heading is
+    ``heading``: pose, landmark means and covariances rotate; the observations (relative to
+    the robot) do not change."""
+    x_hat = ref.apply_odometry(case["prev"], case["control"])
+    angle = heading - x_hat[2]
+    rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    out = dict(case)
+    out["prev"] = np.concatenate([rot @ case["prev"][:2], [ref.wrap(case["prev"][2] + angle)]])
+    out["landmark_mean"] = case["landmark_mean"] @ rot.T
+    covs = [rot @ to_matrix(c) @ rot.T for c in case["landmark_cov"]]
+    out["landmark_cov"] = np.array([[c[0, 0], c[0, 1], c[1, 1]] for c in covs])
+    return out
+
+
 def gauss_newton_kernel(case, params, iterations):
     """jaxslam's proposal relinearised ``iterations`` times, composed as
     ``step_propose._relinearised`` composes it: (mean, chol, has_match, first mean)."""
@@ -433,7 +448,7 @@ def gauss_newton_kernel(case, params, iterations):
     rows = jnp.clip(match, 0)
     gaussian = proposal.relinearised_proposal(
         first, x_hat, pose_cov, case["z"], match >= 0, case["landmark_mean"][rows],
-        case["landmark_cov"][rows], params, iterations)
+        case["landmark_cov"][rows], params=params, iterations=iterations)
     return gaussian.mean, gaussian.chol, gaussian.has_match, first.mean
 
 
@@ -449,7 +464,7 @@ def test_relinearised_proposal_against_reference(params, mode):
     prior N(x_hat, R), every observation linearised at the previous round's mean), 0, 1 and
     3 rounds, turns up to 0.7 rad with 6x Table 1 motion noise (heading prior std up to
     ~0.25 rad): the rounds move the mean by up to 0.16 proposal sigma (eager case) and
-    0.42 (the eight cases), 10^8 times the tolerance, so a kernel that ignored the
+    0.42 (the eight cases; 0.013 m, 10^7 times the tolerance), so a kernel that ignored the
     linearisation pose would fail. Tolerances as the kernel tests (module docstring): poses 1e-9,
     covariances 1e-9 of the largest entry."""
     wide = params._replace(rot1_noise=6.0 * params.rot1_noise,
@@ -459,9 +474,18 @@ def test_relinearised_proposal_against_reference(params, mode):
     rng = np.random.default_rng(23)
     cases = [make_case(rng, wide_ref, rot_max=0.7) for _ in range(1 if mode == "eager" else 8)]
     cases.append(make_case(rng, wide_ref, rot_max=0.7, matched=0))  # no match: x_hat
+    # The world turned so that the +-pi cut lies halfway between x_hat and the proposal's
+    # mean: x_hat - x_l must be wrapped (checked below that the cut is crossed).
+    for _ in range(2):
+        case = make_case(rng, wide_ref, rot_max=0.7, matched=6)
+        covs = np.stack([to_matrix(c) for c in case["landmark_cov"]])
+        turn = ref.wrap(ref.proposal(case["prev"], case["control"], case["landmark_mean"], covs,
+                                     case["z"], case["match"], wide_ref)["mean"][2]
+                        - ref.apply_odometry(case["prev"], case["control"])[2])
+        cases.append(rotated_to(case, ref.wrap(np.pi - turn / 2)))
     padded = [{k: jnp.asarray(v) for k, v in pad_case(c).items() if k in CASE_KEYS}
               for c in cases]
-    moved = 0.0
+    moved, crossed = 0.0, 0
     for iterations in (0, 1, 3):
         if mode == "jit_vmap":
             stacked = jax.tree.map(lambda *leaves: jnp.stack(leaves), *padded)
@@ -485,11 +509,14 @@ def test_relinearised_proposal_against_reference(params, mode):
                 np.testing.assert_allclose(mean, ref.apply_odometry(case["prev"],
                                                                     case["control"]),
                                            rtol=0, atol=ATOL_POSE)
+            x_hat = ref.apply_odometry(case["prev"], case["control"])
+            crossed += abs(float(mean[2]) - x_hat[2]) > np.pi
             shift = mean - first_mean
             shift[2] = ref.wrap(shift[2])
             moved = max(moved, float(np.max(np.abs(shift) / np.sqrt(np.diag(want["cov"])))))
     # Far above the 1e-9 tolerance: a kernel that ignored the linearisation pose would fail.
     assert moved > 1e-3, moved
+    assert crossed > 0  # some mean lies across the +-pi cut from its x_hat
 
 
 SHORT_MOVES = {  # (rot1, trans, rot2) controls below ~0.5 m, default Table 1
