@@ -23,6 +23,11 @@ purity 1.0 means no landmark holds two trees (no false closure).
         --first 200 --out results/loop_closure/first200
 
 Seed 800 is where ``MAX_RISE_PER_DOF`` was read off (its first 40 logs); seed 700 is held out.
+``--proposal`` runs another filter on the same logs (a ``proposal_study`` name with optional
+``:field=value`` overrides), e.g. the mixture at phi = 0.5:
+
+    python experiments/loop_closure_study.py --seed 700 --runs 1000 --forests 50 --first 200 \
+        --proposal "default:proposal='mixture',mixture_ratio=0.5" --out results/loop_closure/mixture
 """
 from __future__ import annotations
 

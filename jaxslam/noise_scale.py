@@ -46,13 +46,14 @@ overflow runs every candidate, as no run is fair. This saves the runs past the p
 MRCLAM's motion x2, observation x1, 3 of the 6 runs.
 
 On a CPU the walk scores two candidates at a time (``workers``, ``default_workers``): when it
-needs a candidate, that one and the next of its direction run together, each in its own
-thread, on the one compiled filter. A filter run of a log does about one core's useful work
-(its steps are many small kernels), so on two cores the pair takes the time of 1.1 runs
-(MRCLAM) to 1.3 runs (Victoria Park). The walk then reads the scores in its own order, and a
-candidate scored ahead of a stop is not used: the choice and the reported scores are those
-of the one-at-a-time walk, and only the time changes (a run past the stop is spent, at little
-wall-clock cost on two cores).
+needs a candidate, that one and the next of its direction run together, each in its own thread,
+on the one compiled filter; while no fair run has been met, the candidate after the one the
+walk waits for is certainly needed and starts as soon as a thread is free. A filter run of a
+log does about one core's useful work (its steps are many small kernels), so on two cores the
+pair takes the time of 1.1 runs (MRCLAM) to 1.3 runs (Victoria Park). The walk then reads the
+scores in its own order, and a candidate scored ahead of a stop is not used: the choice and the
+reported scores are those of the one-at-a-time walk, and only the time changes (a run past the
+stop is spent, at little wall-clock cost on two cores).
 
 The new-landmark credit is held fixed. The filter credits an observation that no landmark
 explains with the density of a match at the gate under the observation's own noise
@@ -245,51 +246,64 @@ def walk_stage(scales, score, stop_at_first_drop: bool = True, workers: int = 1,
     (dropped no birth, finite score) that scores below the best fair run met on that walk
     (1 included); candidates not run get NaN and -1 (module docstring).
 
-    ``workers``: when a candidate is needed, it and the next ``workers`` - 1 unscored ones of
-    its direction are scored at once, each in its own thread (``score`` must be thread-safe),
-    and all of them finish before the walk goes on; the walk then reads them in order, so a
-    candidate scored ahead of a stop is not used and reads NaN and -1 as if not run, and an
-    error it raised is not raised: the result is the same for every ``workers``, only the
-    time (and the memory: ``workers`` runs alive at once) differs. The threads see JAX's
-    global settings, not a context manager of the calling thread (``jax.enable_x64`` and
-    the like are per thread): inside one, use ``workers=1``. ``known``: {scale: RunScore}
-    already scored (not scored again; scales not in the grid are ignored)."""
+    ``workers``: when a candidate is needed and not started, it and the next unscored ones
+    of its direction start, each in its own thread (``score`` must be thread-safe), as many
+    as leave at most ``workers`` running; the walk waits for each when it reads it, in walk
+    order. While the walk has met no fair run, the candidate it waits for cannot stop it, so
+    the one after is certainly needed and starts at once if a thread is free (on Victoria
+    Park, whose x1 run overflowed, a stopped run frees its thread early). A candidate scored
+    ahead of a stop is not used and reads NaN and -1 as if not run, and an error it raised is
+    not raised; the stage returns after every started run has finished. So the result is the
+    same for every ``workers``; only the time (and the memory: up to ``workers`` runs alive
+    at once) differs. The threads see JAX's global settings, not a context manager of the
+    calling thread (``jax.enable_x64`` and the like are per thread): inside one, use
+    ``workers=1``. ``known``: {scale: RunScore} already scored (not scored again; scales not
+    in the grid are ignored)."""
     scales = np.asarray(scales, np.float64)
     results = {int(np.flatnonzero(scales == scale)[0]): result
                for scale, result in (known or {}).items() if np.any(scales == scale)}
 
-    def fetch(indices) -> None:  # score the first ``workers`` unscored of ``indices``
-        todo = [index for index in indices if index not in results][:workers]
-        if len(todo) == 1:
-            results[todo[0]] = score(float(scales[todo[0]]))
-            return
-        with ThreadPoolExecutor(len(todo)) as pool:  # waits for every run to finish
-            futures = [pool.submit(score, float(scales[index])) for index in todo]
-        results.update(zip(todo, futures))  # a Future until the walk reads it
-
+    pool = ThreadPoolExecutor(workers) if workers > 1 else None
     used = set()
 
-    def fair_score(walk, position) -> float:  # the run's fair score, -inf when not fair
-        if walk[position] not in results:
-            fetch(walk[position:])
-        used.add(walk[position])
-        result = results[walk[position]]
+    def start_runs(indices, needed: bool) -> None:  # the first unscored of ``indices``
+        todo = [index for index in indices if index not in results]
+        running = sum(isinstance(r, Future) and not r.done() for r in results.values())
+        for index in todo[:max(workers - running, 1 if needed else 0)]:
+            results[index] = pool.submit(score, float(scales[index]))  # a Future until read
+
+    def fair_score(walk, position, next_needed=False) -> float:  # -inf when not fair
+        index = walk[position]
+        if pool is None and index not in results:
+            results[index] = score(float(scales[index]))
+        elif pool is not None and index not in results:
+            start_runs(walk[position:], needed=True)  # it and the next, ``workers`` at once
+        elif pool is not None and next_needed:
+            start_runs(walk[position + 1:position + 2], needed=False)
+        used.add(index)
+        result = results[index]
         if isinstance(result, Future):
-            result = results[walk[position]] = result.result()
+            result = results[index] = result.result()
         fair = result.dropped_births == 0 and np.isfinite(result.log_likelihood)
         return float(result.log_likelihood) if fair else -np.inf
 
-    start = int(np.flatnonzero(scales == 1.0)[0])
+    first = int(np.flatnonzero(scales == 1.0)[0])
     up = [int(i) for i in np.argsort(scales, kind="stable") if scales[i] > 1.0]
     down = [int(i) for i in np.argsort(-scales, kind="stable") if scales[i] < 1.0]
-    for direction in (up, down):
-        walk = [start] + direction
-        best = fair_score(walk, 0)
-        for position in range(1, len(walk)):
-            value = fair_score(walk, position)
-            if stop_at_first_drop and np.isfinite(value) and value < best:
-                break
-            best = max(best, value)
+    try:
+        for direction in (up, down):
+            walk = [first] + direction
+            best = fair_score(walk, 0)
+            for position in range(1, len(walk)):
+                # With no fair run met yet this candidate cannot stop the walk, so the next
+                # one is needed: it starts now if a worker is free.
+                value = fair_score(walk, position, next_needed=best == -np.inf)
+                if stop_at_first_drop and np.isfinite(value) and value < best:
+                    break
+                best = max(best, value)
+    finally:
+        if pool is not None:
+            pool.shutdown(wait=True)  # runs scored ahead of a stop finish before returning
     objective = np.full(scales.shape, np.nan)
     dropped = np.full(scales.shape, -1, np.int64)
     for index in used:

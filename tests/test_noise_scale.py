@@ -335,6 +335,32 @@ def test_walk_with_workers_scores_candidates_at_once_and_skips_known_ones():
     np.testing.assert_array_equal(dropped, [0, 0, 0, -1, -1])
 
 
+def test_walk_starts_a_certainly_needed_candidate_while_it_waits():
+    """x1 (known) and x2 overflowed, so no fair run has been met when the walk waits for x4:
+    x4 cannot stop it and x8 is certainly needed. With two workers x8 starts as soon as x2's
+    thread is free, while x4 still runs: x4 here finishes only once x8 has started (it would
+    time out if the walk waited for x2 and x4 together before starting x8). The result is
+    the one-at-a-time walk's."""
+    table = {1.0: (5.0, 3), 2.0: (np.nan, 4), 4.0: (7.0, 0), 8.0: (6.0, 0), 16.0: (1.0, 0)}
+    x8_started = threading.Event()
+    calls = []
+
+    def score(scale):
+        calls.append(scale)
+        if scale == 8.0:
+            x8_started.set()
+        if scale == 4.0:
+            assert x8_started.wait(timeout=30.0), "x8 did not start while x4 ran"
+        return ns.RunScore(*table[scale])
+
+    known = {1.0: ns.RunScore(5.0, 3)}
+    objective, dropped = ns.walk_stage(GRID, score, workers=2, known=known)
+    assert sorted(calls) == [2.0, 4.0, 8.0]  # x8 falls below x4: x16 is never started
+    expected = ns.walk_stage(GRID, _stub_scores(table)[0], known=known)
+    np.testing.assert_array_equal(objective, expected[0])
+    np.testing.assert_array_equal(dropped, expected[1])
+
+
 def test_search_with_workers_equals_the_search_one_at_a_time():
     """Real filter runs in two threads score exactly what they score one after the other
     (the same compiled program on the same inputs), so the choice and every score agree."""
