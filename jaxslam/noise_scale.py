@@ -48,7 +48,7 @@ MRCLAM's motion x2, observation x1, 3 of the 6 runs.
 On a CPU the walk scores two candidates at a time (``workers``, ``default_workers``): when it
 needs a candidate, that one and the next of its direction run together, each in its own thread,
 on the one compiled filter; while no fair run has been met, the candidate after the one the
-walk waits for is certainly needed and starts as soon as a thread is free. A filter run of a
+walk waits for is certainly needed and starts at once if a thread is free. A filter run of a
 log does about one core's useful work (its steps are many small kernels), so on two cores the
 pair takes the time of 1.1 runs (MRCLAM) to 1.3 runs (Victoria Park). The walk then reads the
 scores in its own order, and a candidate scored ahead of a stop is not used: the choice and the
@@ -249,13 +249,14 @@ def walk_stage(scales, score, stop_at_first_drop: bool = True, workers: int = 1,
     ``workers``: when a candidate is needed and not started, it and the next unscored ones
     of its direction start, each in its own thread (``score`` must be thread-safe), as many
     as leave at most ``workers`` running; the walk waits for each when it reads it, in walk
-    order. While the walk has met no fair run, the candidate it waits for cannot stop it, so
-    the one after is certainly needed and starts at once if a thread is free (on Victoria
-    Park, whose x1 run overflowed, a stopped run frees its thread early). A candidate scored
-    ahead of a stop is not used and reads NaN and -1 as if not run, and an error it raised is
-    not raised; the stage returns after every started run has finished. So the result is the
-    same for every ``workers``; only the time (and the memory: up to ``workers`` runs alive
-    at once) differs. The threads see JAX's global settings, not a context manager of the
+    order. While the walk has met no fair run (or without ``stop_at_first_drop``), the
+    candidate it waits for cannot stop it, so the one after is certainly needed and starts at
+    once if a thread is free (on Victoria Park, whose x1 run overflowed, a run that ends at
+    its first dropped birth frees its thread early). A candidate scored ahead of a stop is
+    not used and reads NaN and -1 as if not run, and an error it raised is not raised; at
+    most ``workers`` - 1 are scored past a stop in each direction, and the stage returns
+    after every started run has finished. So the result is the same for every ``workers``;
+    only the time (and the memory: up to ``workers`` runs alive at once) differs. The threads see JAX's global settings, not a context manager of the
     calling thread (``jax.enable_x64`` and the like are per thread): inside one, use
     ``workers=1``. ``known``: {scale: RunScore} already scored (not scored again; scales not
     in the grid are ignored)."""
@@ -263,7 +264,7 @@ def walk_stage(scales, score, stop_at_first_drop: bool = True, workers: int = 1,
     results = {int(np.flatnonzero(scales == scale)[0]): result
                for scale, result in (known or {}).items() if np.any(scales == scale)}
 
-    pool = ThreadPoolExecutor(workers) if workers > 1 else None
+    pool = None
     used = set()
 
     def start_runs(indices, needed: bool) -> None:  # the first unscored of ``indices``
@@ -291,13 +292,15 @@ def walk_stage(scales, score, stop_at_first_drop: bool = True, workers: int = 1,
     up = [int(i) for i in np.argsort(scales, kind="stable") if scales[i] > 1.0]
     down = [int(i) for i in np.argsort(-scales, kind="stable") if scales[i] < 1.0]
     try:
+        pool = ThreadPoolExecutor(workers) if workers > 1 else None
         for direction in (up, down):
             walk = [first] + direction
             best = fair_score(walk, 0)
             for position in range(1, len(walk)):
-                # With no fair run met yet this candidate cannot stop the walk, so the next
-                # one is needed: it starts now if a worker is free.
-                value = fair_score(walk, position, next_needed=best == -np.inf)
+                # With no fair run met yet (or no stop) this candidate cannot stop the walk,
+                # so the next one is needed: it starts now if a worker is free.
+                next_needed = not stop_at_first_drop or best == -np.inf
+                value = fair_score(walk, position, next_needed=next_needed)
                 if stop_at_first_drop and np.isfinite(value) and value < best:
                     break
                 best = max(best, value)
