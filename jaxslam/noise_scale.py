@@ -256,10 +256,11 @@ def walk_stage(scales, score, stop_at_first_drop: bool = True, workers: int = 1,
     not used and reads NaN and -1 as if not run, and an error it raised is not raised; at
     most ``workers`` - 1 are scored past a stop in each direction, and the stage returns
     after every started run has finished. So the result is the same for every ``workers``;
-    only the time (and the memory: up to ``workers`` runs alive at once) differs. The threads see JAX's global settings, not a context manager of the
-    calling thread (``jax.enable_x64`` and the like are per thread): inside one, use
-    ``workers=1``. ``known``: {scale: RunScore} already scored (not scored again; scales not
-    in the grid are ignored)."""
+    only the time (and the memory: up to ``workers`` runs alive at once) differs. The
+    threads see JAX's global settings, not a context manager of the calling thread
+    (``jax.enable_x64`` and the like are per thread): inside one, use ``workers=1``.
+    ``known``: {scale: RunScore} already scored (not scored again; scales not in the grid
+    are ignored)."""
     scales = np.asarray(scales, np.float64)
     results = {int(np.flatnonzero(scales == scale)[0]): result
                for scale, result in (known or {}).items() if np.any(scales == scale)}
