@@ -37,6 +37,7 @@ CONFIG_UNITS = {
     "params.bearing_std_floor": "rad", "params.radius_noise": "m", "params.max_range": "m",
     "params.min_range": "m", "params.miss_range": "m", "params.miss_bearing": "rad",
     "params.association_gate": "squared Mahalanobis distance",
+    "params.association_heading_std": "rad",
     "params.new_landmark_log_offset": "log-likelihood",
     "params.detection_probability": "probability",
     "params.false_alarm_probability": "probability", "params.existence_init": "log-odds",

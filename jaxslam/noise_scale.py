@@ -21,7 +21,8 @@ in state-space models", Statistical Science 2015). Here it only picks two multip
 EM result:
 
     theta(s_m, s_o): Eq. (1)'s coefficients (Geiser et al., "Practical Implementation of
-    FastSLAM for Forestry Robot", ICAROB 2023) of rot1, trans and rot2 times s_m; the range
+    FastSLAM for Forestry Robot", ICAROB 2023) of rot1, trans and rot2 times s_m, and with
+    them ``association_heading_std`` (a typical heading std of that model); the range
     and bearing coefficients and floors (std = c_d d + c_0, Table 2's form) times s_o.
 
 Coordinate ascent on a grid that contains 1 (EM's own result is always a candidate): first
@@ -102,7 +103,9 @@ import numpy as np
 from jaxslam.filter import run_filter
 from jaxslam.types import FilterConfig, Observations, Params
 
-MOTION_FIELDS = ("rot1_noise", "trans_noise", "rot2_noise")
+# ``association_heading_std`` moves with the motion noise: the calibration sets it to the
+# motion model's typical heading std (``self_calibration``), which is linear in the coefficients.
+MOTION_FIELDS = ("rot1_noise", "trans_noise", "rot2_noise", "association_heading_std")
 OBSERVATION_FIELDS = ("range_noise", "bearing_noise", "range_std_floor", "bearing_std_floor")
 DEFAULT_SCALES = (1.0, 2.0, 4.0, 8.0)
 
@@ -133,10 +136,10 @@ class ScaleSearch(NamedTuple):
 
 
 def scaled_noise(params: Params, motion_scale, observation_scale) -> Params:
-    """``params`` with the motion-noise fields times ``motion_scale``, the observation
-    noise fields times ``observation_scale`` = s_o and ``new_landmark_log_offset`` plus
-    2 log s_o, which keeps ``ekf.unexplained_log_likelihood`` at every range as it was
-    (module docstring). Scalars or (S,) arrays: then every leaf gets a leading S axis, for
+    """``params`` with the motion-noise fields (and ``association_heading_std``) times
+    ``motion_scale``, the observation noise fields times ``observation_scale`` = s_o and
+    ``new_landmark_log_offset`` plus 2 log s_o, which keeps
+    ``ekf.unexplained_log_likelihood`` at every range as it was (module docstring). Scalars or (S,) arrays: then every leaf gets a leading S axis, for
     ``jax.vmap`` over candidates."""
     motion_scale = jnp.asarray(motion_scale, params.rot1_noise.dtype)
     observation_scale = jnp.asarray(observation_scale, params.rot1_noise.dtype)

@@ -73,6 +73,20 @@ def _motion_draws(config: FilterConfig, key, params: Params, particles: Particle
     return jnp.where(keep_pose, particles.pose, draw)
 
 
+def _matching_cov(config, params, pose_cov):
+    """The pose covariance (3, 3) that the association at the motion prediction (or at a
+    turn piece's centre) adds to S, or None.
+
+    Sigma_u + diag(0, 0, s^2), s = ``Params.association_heading_std``, with
+    ``match_pose_uncertainty``; None (S alone) without. Only the matching sees s: the
+    proposal, the update and the weight keep Sigma_u.
+    """
+    if not config.match_pose_uncertainty:
+        return None
+    heading_var = jnp.square(params.association_heading_std).astype(pose_cov.dtype)
+    return pose_cov.at[2, 2].add(heading_var)
+
+
 def _burst_pieces(config, params, particle: Particles, x_hat, control, obs):
     """The pieces' proposal of a bursty motion prior (``FilterConfig.burst_proposal``).
 
@@ -88,8 +102,7 @@ def _burst_pieces(config, params, particle: Particles, x_hat, control, obs):
     motion = config.motion_model
 
     def piece(centre, cov):
-        found = associate(config, params, particle, centre, obs,
-                          cov if config.match_pose_uncertainty else None)
+        found = associate(config, params, particle, centre, obs, _matching_cov(config, params, cov))
         gaussian = _relinearised(config, params, particle, centre, cov, obs, found)
         unexplained = jnp.sum(jnp.where(obs.valid & (found.match < 0),
                                         ekf.unexplained_log_likelihood(obs.z[:, 0], params),
@@ -125,7 +138,7 @@ def _observation_gaussian(config, params, particle: Particles, x_hat, control, o
     pose_cov = proposal.motion_pose_covariance(particle.pose, control, params,
                                                config.motion_model)
     found = associate(config, params, particle, x_hat, obs,
-                      pose_cov if config.match_pose_uncertainty else None)
+                      _matching_cov(config, params, pose_cov))
     return _relinearised(config, params, particle, x_hat, pose_cov, obs, found), found
 
 

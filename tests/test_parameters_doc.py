@@ -24,12 +24,13 @@ from jaxslam.validation import check_params
 DOC = pathlib.Path(__file__).resolve().parents[1] / "docs" / "parameters.md"
 
 # The fields jaxslam calibrate estimates (self_calibration.calibrate_params: the keys of its
-# ``update``), which the page marks **calibrated**.
+# M-step ``update``, and association_heading_std, set from the fitted motion noise), which the
+# page marks **calibrated**.
 CALIBRATED = {
     "rot1_noise", "trans_noise", "rot2_noise", "motion_outlier_probability",
     "motion_outlier_scale", "range_noise", "bearing_noise", "range_std_floor",
     "bearing_std_floor", "max_range", "miss_range", "miss_bearing", "detection_probability",
-    "false_alarm_probability", "association_gate", "airlock_sigmas",
+    "false_alarm_probability", "association_gate", "airlock_sigmas", "association_heading_std",
 }
 
 HEADER = ["Field", "Unit", "Default", "Read when", "Enters", "Estimate from"]

@@ -81,6 +81,57 @@ def test_recovers_the_noise_groups_within_stated_intervals():
     assert info.noise_scales.motion_scale == info.noise_scales.observation_scale == 1.0
 
 
+def test_heading_std_for_matching_is_the_fitted_models_typical_heading_std():
+    """``association_heading_std`` = sqrt(mean_t(sigma_rot1,t^2 + sigma_rot2,t^2)) of the
+    returned motion noise over the log's moves, Eq. (1) written out in NumPy float64
+    (sigma = a |trans| + b |rot| + c; every move here is 0.5 m, above min_translation).
+    float32 coefficients: 1e-5 relative. The log's own figure, not the default 0.1."""
+    controls, obs, _ = _log()
+    params, info = _calibrated()
+    moves = np.asarray(controls, np.float64)
+    rot1, trans, rot2 = np.abs(moves).T
+
+    def eq1(coefficients, rot):
+        a, b, c = np.asarray(coefficients, np.float64)
+        return a * trans + b * rot + c
+
+    want = np.sqrt(np.mean(eq1(params.rot1_noise, rot1) ** 2 + eq1(params.rot2_noise, rot2) ** 2))
+    assert np.min(trans) > float(params.min_translation)
+    np.testing.assert_allclose(float(params.association_heading_std), want, rtol=1e-5)
+    np.testing.assert_allclose(info.values["association_heading_std"], want, rtol=1e-5)
+    assert abs(want - 0.1) > 0.05
+
+
+def test_the_starting_settings_match_with_their_own_typical_heading_std(monkeypatch):
+    """The first filter run's ``association_heading_std`` is the typical heading std of the
+    starting motion noise on this log (not the library default 0.1), with no ``params``
+    given and with given ones (whose own value 0.25 is replaced: it is estimated)."""
+    from jaxslam import filter as filter_module
+
+    seen = []
+
+    def recording_run(config, key, params, *args, **kwargs):
+        seen.append(float(params.association_heading_std))
+        return filter_module.run_filter(config, key, params, *args, **kwargs)
+
+    monkeypatch.setattr(sc, "run_filter", recording_run)
+    controls, obs, poses = _log()
+    options = dict(iterations=1, scale_search=False)
+    sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0], **options)
+    z_range = np.asarray(obs.z)[np.asarray(obs.valid)][:, 0]
+    want = typical_stds(sc.starting_params(CONFIG), np.asarray(controls, np.float64), z_range)[0]
+    np.testing.assert_allclose(seen[0], want, rtol=1e-5)
+    assert abs(want - 0.1) > 0.05
+    given = sc.starting_params(CONFIG, association_heading_std=0.25,
+                               rot1_noise=(0.0, 0.3, 0.01))
+    seen.clear()
+    sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0], params=given,
+                        **options)
+    want_given = typical_stds(given, np.asarray(controls, np.float64), z_range)[0]
+    np.testing.assert_allclose(seen[0], want_given, rtol=1e-5)
+    assert abs(want_given - want) > 0.01 and abs(want_given - 0.25) > 0.1
+
+
 def test_calibration_moves_a_wrong_start_towards_the_truth():
     controls, obs, _ = _log()
     params, info = _calibrated()
@@ -149,6 +200,23 @@ def test_sparse_landmarks_keep_the_sensor_noise_and_warn():
     np.testing.assert_array_equal(np.asarray(params.range_noise), np.asarray(given.range_noise))
     assert any("sensor noise" in w for w in info.warnings)
     assert "partly calibrated" in info.verdict
+
+
+def test_a_log_with_no_motion_fit_returns_the_given_heading_std():
+    """The EM runs match with the starting motion noise's typical heading std, but with no
+    motion fit behind the result the given value comes back and ``values`` does not list it
+    (the given settings are used, as the warnings say)."""
+    steps = 60
+    controls = jnp.tile(jnp.array([[0.0, 0.5, 0.0]]), (steps, 1))
+    z = jnp.stack([jnp.full((steps, 1), 3.0), jnp.full((steps, 1), 1.5)], -1)
+    obs = make_observations(z, jnp.ones((steps, 1), bool))
+    config = FilterConfig(num_particles=4, max_landmarks=64, max_obs=1)
+    given = default_params(association_gate=1e-3, association_heading_std=0.25)
+    params, info = sc.calibrate_params(config, jax.random.PRNGKey(0), controls, obs,
+                                       params=given, iterations=1)
+    assert any("given settings are used" in w for w in info.warnings)
+    assert float(params.association_heading_std) == np.float32(0.25)
+    assert "association_heading_std" not in info.values
 
 
 @pytest.mark.parametrize("bad, message", [

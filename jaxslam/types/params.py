@@ -63,6 +63,19 @@ class Params(NamedTuple):
         innovation covariance leaves out the particle's own pose error (FastSLAM 1.0): on the
         default forest (8 runs, P=16, T=100) a gate of 9.21 left 3.6 twin landmarks per run,
         16 left 0.75, 25 left 0.4-0.6 and 49 left none, with equal pose and map errors.
+      association_heading_std: a heading std [rad] added to the motion prior's pose
+        covariance Sigma_u where the observation and mixture proposals match at the motion
+        prediction x_hat (and at each turn piece's centre, ``FilterConfig.burst_turn_pieces``)
+        with ``FilterConfig.match_pose_uncertainty``, for that matching only:
+        the proposal, the update and the weight keep Sigma_u. A heading offset moves every
+        predicted bearing by the same angle and no range, so Hx diag(0, 0, s^2) Hx^T adds
+        s^2 to the bearing variance of every pair. Why: Eq. (1)'s std is evaluated at the
+        measured turn, and when the true turn is larger (a burst) the bearing gate at x_hat
+        refuses far trees the particle already mapped, which then start new landmarks and
+        the loop is lost. Default 0.1 rad, chosen on simulated tuning logs with 0.15 rad
+        turns (docs/results.md, proposal_study, "A heading std for matching at the
+        prediction"); ``calibrate_params`` sets it from the log (the fitted motion model's
+        typical heading std): as an angle it widens the gate with range.
       new_landmark_log_offset: an observation that no landmark explains (it starts a new
         landmark, or it is set aside in the airlock) is credited the log-likelihood of a match
         exactly at the gate under its own measurement noise, plus this offset. Every valid
@@ -105,6 +118,7 @@ class Params(NamedTuple):
     miss_range: jnp.ndarray
     miss_bearing: jnp.ndarray
     association_gate: jnp.ndarray
+    association_heading_std: jnp.ndarray
     new_landmark_log_offset: jnp.ndarray
     detection_probability: jnp.ndarray
     false_alarm_probability: jnp.ndarray
@@ -148,6 +162,7 @@ PARAM_DEFAULTS = {
     "miss_bearing": float(np.pi),
     # Association.
     "association_gate": 25.0,
+    "association_heading_std": 0.1,
     "new_landmark_log_offset": 0.0,
     # Landmark existence.
     "detection_probability": 0.9,

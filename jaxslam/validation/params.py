@@ -45,6 +45,7 @@ _RULES = {
     "miss_range": "nonneg_or_inf",
     "miss_bearing": "positive",
     "association_gate": "positive",
+    "association_heading_std": "nonneg",
     "new_landmark_log_offset": "finite",
     "detection_probability": "open_low_unit",
     "false_alarm_probability": "unit_open_high",
