@@ -139,8 +139,9 @@ def scaled_noise(params: Params, motion_scale, observation_scale) -> Params:
     """``params`` with the motion-noise fields (and ``association_heading_std``) times
     ``motion_scale``, the observation noise fields times ``observation_scale`` = s_o and
     ``new_landmark_log_offset`` plus 2 log s_o, which keeps
-    ``ekf.unexplained_log_likelihood`` at every range as it was (module docstring). Scalars or (S,) arrays: then every leaf gets a leading S axis, for
-    ``jax.vmap`` over candidates."""
+    ``ekf.unexplained_log_likelihood`` at every range as it was (module docstring). Scalars
+    or (S,) arrays: then every leaf gets a leading S axis, for ``jax.vmap`` over
+    candidates."""
     motion_scale = jnp.asarray(motion_scale, params.rot1_noise.dtype)
     observation_scale = jnp.asarray(observation_scale, params.rot1_noise.dtype)
     batch = jnp.broadcast_shapes(motion_scale.shape, observation_scale.shape)

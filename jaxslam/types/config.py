@@ -60,8 +60,8 @@ class FilterConfig:
         prediction to the matching covariance, Z = Hx Sigma_u Hx^T + S (FastSLAM 2.0,
         Montemerlo et al. 2003), so an accurate sensor still matches when x_hat is off by
         the motion noise, with diag(0, 0, s^2) added to Sigma_u for the matching only
-        (s = ``Params.association_heading_std``). False matches with S alone. Ignored by the motion proposal (each
-        particle matches at its own sampled pose).
+        (s = ``Params.association_heading_std``). False matches with S alone. Ignored by the
+        motion proposal (each particle matches at its own sampled pose).
       anchor_empty_map: a particle whose map is still empty moves by the motion mean
         instead of a draw: no later observation can tell its pose error from the frame of
         the map it will build, so a draw only adds an error that rotates the whole map (the
