@@ -69,7 +69,8 @@ class StepInfo(NamedTuple):
     num_invalid_obs: () int32 observations masked out as malformed (NaN, negative range...).
     num_dropped_births: (P,) int32 new landmarks dropped because the map was full.
     num_set_aside: (P,) int32 observations set aside in the airlock.
-    mixture_ratio: () the phi used this step (0 for the motion proposal, 1 for observation).
+    mixture_ratio: () the phi used this step, averaged over the particles (0 for the motion
+      proposal, 1 for observation; the adaptive mixture's phi is per particle).
     num_observation_draws: () int32 particles drawn from the observation proposal.
     mean_log_likelihood: () weighted mean of the per-observation log-likelihood.
     best_particle: () int32 index (after resampling) of a copy of the particle that had the
@@ -220,7 +221,8 @@ def _step_info(proposed, weights, mapped, resampled, ratio, num_invalid,
         match=proposed.association.match,
         match_rounds=jnp.max(proposed.association.rounds).astype(jnp.int32),
         num_invalid_obs=num_invalid, num_dropped_births=mapped.num_dropped,
-        num_set_aside=mapped.num_set_aside, mixture_ratio=ratio,
+        num_set_aside=mapped.num_set_aside,
+        mixture_ratio=jnp.mean(proposed.ratio).astype(ratio.dtype),
         num_observation_draws=jnp.sum(proposed.used_observation).astype(jnp.int32),
         mean_log_likelihood=weights.mean_log_likelihood,
         best_particle=resampled.best_particle, ancestor=resampled.ancestor,

@@ -336,6 +336,54 @@ def adaptive_ratio(likelihood_fast, likelihood_slow, params: Params):
     return jnp.clip(ratio, params.mixture_min, params.mixture_max)
 
 
+def moment_matched(proposal, centre):
+    """Mean offset and covariance of an ``ObservationProposal`` or ``PieceMixture`` about
+    ``centre`` (3,): delta_j = mu_j - centre (heading wrapped), delta = sum_j w_j delta_j,
+    B = sum_j w_j (C_j + delta_j delta_j^T) - delta delta^T. Returns delta (3,), B (3, 3)."""
+    if isinstance(proposal, PieceMixture):
+        means, chols, weights = proposal.means, proposal.chols, jnp.exp(proposal.log_weights)
+    else:
+        means, chols = proposal.mean[None], proposal.chol[None]
+        weights = jnp.ones((1,), proposal.mean.dtype)
+    offsets = means - centre[None, :]
+    offsets = offsets.at[:, 2].set(wrap_angle(offsets[:, 2]))
+    delta = weights @ offsets
+    second = jnp.einsum("j,jab,jcb->ac", weights, chols, chols) + jnp.einsum(
+        "j,ja,jb->ab", weights, offsets, offsets)
+    return delta, second - jnp.outer(delta, delta)
+
+
+def motion_draw_efficiency(delta, prior_cov, posterior_cov):
+    """eta in [0, 1]: the expected effective-sample fraction of draws from the motion prior
+    p = N(0, A) weighed toward the proposal's posterior q = N(delta, B) (all (3,) / (3, 3)).
+
+    eta = 1 / E_p[(q / p)^2] (Kong's ESS of importance weights w = q / p, whose mean is 1):
+
+        E_p[(q / p)^2] = det(A)^1/2 det(C)^1/2 / det(B) exp(2 u^T C u - delta^T u),
+        C^-1 = 2 B^-1 - A^-1,   u = B^-1 delta.
+
+    eta = 1 when B = A and delta = 0 (the observations add nothing); eta -> 0 when B is much
+    tighter than A or delta far out in A's tail: motion draws then rarely land where the
+    observations put the pose. Where C^-1 is not positive definite (B wider than 2A in some
+    direction) E_p[(q / p)^2] is infinite and eta = 0.
+    """
+    prior_inv, prior_log_det = spd_inverse3(prior_cov)
+    posterior_inv, posterior_log_det = spd_inverse3(posterior_cov)
+    chol_c_inv = cholesky3(2.0 * posterior_inv - prior_inv)
+    u = posterior_inv @ delta
+    white = solve_lower3(chol_c_inv, u)  # u^T C u = |L^-1 u|^2 with C^-1 = L L^T
+    log_second_moment = (0.5 * prior_log_det - 0.5 * log_det_from_cholesky3(chol_c_inv)
+                         - posterior_log_det + 2.0 * jnp.sum(white**2) - delta @ u)
+    eta = jnp.exp(-jnp.maximum(log_second_moment, 0.0))
+    return jnp.where(jnp.isfinite(log_second_moment), eta, 0.0)
+
+
+def coverage_ratio(efficiency, params: Params):
+    """phi = phi_min + (phi_max - phi_min) (1 - eta): the observation proposal takes the share
+    of draws that the motion prior would waste (``motion_draw_efficiency`` eta)."""
+    return params.mixture_min + (params.mixture_max - params.mixture_min) * (1.0 - efficiency)
+
+
 def update_likelihood_averages(fast, slow, mean_log_likelihood, has_data, first_step, params):
     """Exponential averages of the per-observation log-likelihood (unchanged without data)."""
     new_fast = jnp.where(first_step, mean_log_likelihood,
@@ -351,9 +399,12 @@ __all__ = [
     "piece_mixture",
     "piece_mixture_log_density",
     "adaptive_ratio",
+    "coverage_ratio",
     "gaussian_pose_log_density",
     "mixture_log_correction",
     "mixture_sample",
+    "moment_matched",
+    "motion_draw_efficiency",
     "motion_pose_covariance",
     "observation_proposal",
     "predict_pose",

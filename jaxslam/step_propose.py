@@ -36,16 +36,19 @@ class Proposal(NamedTuple):
     log_correction: (P,) log p(x_t^i | x_{t-1}^i, u_t) - log q(x_t^i), 0 for the motion
       proposal and for kept poses.
     used_observation: (P,) bool, drawn from the observation proposal.
+    ratio: (P,) the phi each particle was drawn with (``adaptive`` mixture: per particle).
     """
 
     pose: jnp.ndarray
     association: Association
     log_correction: jnp.ndarray
     used_observation: jnp.ndarray
+    ratio: jnp.ndarray
 
 
 def mixture_ratio(config: FilterConfig, params: Params, state: FilterState):
-    """() phi, the probability of drawing from the observation proposal this step."""
+    """() phi, the probability of drawing from the observation proposal this step (for the
+    ``adaptive`` mixture the floor under each particle's own phi, ``particle_ratio``)."""
     if config.proposal == "motion":
         return jnp.zeros((), state.log_weight.dtype)
     if config.proposal == "observation":
@@ -53,6 +56,33 @@ def mixture_ratio(config: FilterConfig, params: Params, state: FilterState):
     if config.mixture_mode == "adaptive":
         return proposal.adaptive_ratio(state.likelihood_fast, state.likelihood_slow, params)
     return jnp.asarray(params.mixture_ratio, state.log_weight.dtype)
+
+
+def particle_ratio(config: FilterConfig, params: Params, particle: Particles, x_hat, control,
+                   gaussian, ratio):
+    """() phi of one particle: ``ratio`` (), except for the ``adaptive`` mixture, where
+
+        phi_i = max(phi_aug, phi_min + (phi_max - phi_min) (1 - eta_i)),
+
+    phi_aug = ``ratio`` the augmented-MCL phi of the likelihood averages (Thrun, Burgard and
+    Fox, Probabilistic Robotics, table 8.3: it rises after a sudden drop of the likelihood)
+    and eta_i the expected effective-sample fraction of this particle's motion draws
+    weighed toward its observation proposal (``proposal.motion_draw_efficiency``, the motion
+    prior N(x_hat, Sigma_u) and the proposal moment-matched). The second term answers the
+    regime of an accurate sensor and poor odometry, where the likelihood stays low at every
+    step, so phi_aug stays at phi_min, while motion draws land far from where the
+    observations put the pose (eta near 0). A particle without a match takes a motion draw
+    whatever phi is.
+    """
+    if not (config.proposal == "mixture" and config.mixture_mode == "adaptive"):
+        return ratio
+    prior_cov = proposal.motion_pose_covariance(particle.pose, control, params,
+                                                config.motion_model)
+    prior_cov = prior_cov + proposal.pose_jitter(prior_cov) * jnp.eye(3, dtype=prior_cov.dtype)
+    delta, posterior_cov = proposal.moment_matched(gaussian, x_hat)
+    efficiency = proposal.motion_draw_efficiency(delta, prior_cov, posterior_cov)
+    coverage = proposal.coverage_ratio(efficiency, params).astype(ratio.dtype)
+    return jnp.clip(jnp.maximum(ratio, coverage), params.mixture_min, params.mixture_max)
 
 
 def _motion_draws(config: FilterConfig, key, params: Params, particles: Particles, control,
@@ -172,16 +202,18 @@ def propose(config: FilterConfig, key, params: Params, particles: Particles, con
         found = jax.vmap(lambda particle, pose: associate(config, params, particle, pose, obs))(
             particles, motion_draw)
         return Proposal(motion_draw, found, jnp.zeros((num,), motion_draw.dtype),
-                        jnp.zeros(num, bool))
+                        jnp.zeros(num, bool), jnp.zeros((num,), motion_draw.dtype))
 
     def one(k, particle, motion_sample):
         x_hat = predict_pose(particle.pose, control, params, config.motion_model)
         gaussian, found = _observation_gaussian(config, params, particle, x_hat, control, obs)
-        pose, used_obs, piece = proposal.mixture_sample(k, motion_sample, gaussian, ratio)
+        phi = jnp.where(keep_pose, ratio, particle_ratio(config, params, particle, x_hat,
+                                                         control, gaussian, ratio))
+        pose, used_obs, piece = proposal.mixture_sample(k, motion_sample, gaussian, phi)
         if config.burst_proposal:
             found = jax.tree.map(lambda leaf: leaf[piece], found)
         correction = proposal.mixture_log_correction(particle.pose, pose, control, params,
-                                                     config.motion_model, gaussian, ratio)
+                                                     config.motion_model, gaussian, phi)
         # The update and the weight use the association at the pose they are evaluated at:
         # a motion draw is matched at its own pose, exactly as the motion proposal does (so
         # phi = 0 is the motion proposal), and with ``associate_at_sample`` an observation
@@ -192,7 +224,7 @@ def propose(config: FilterConfig, key, params: Params, particles: Particles, con
         # A kept pose was not proposed: there is no density ratio to correct (and the zero
         # control's p_motion at it is NaN when the constant noise terms are 0).
         correction = jnp.where(keep_pose, jnp.zeros_like(correction), correction)
-        return pose, found, correction, used_obs
+        return pose, found, correction, used_obs, phi
 
     return Proposal(*jax.vmap(one)(jax.random.split(key_mixture, num), particles, motion_draw))
 

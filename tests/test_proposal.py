@@ -333,11 +333,30 @@ def test_update_likelihood_averages_vs_reference(params):
     assert float(first[0]) == -5.0 and float(first[1]) == -5.0
 
 
+def _augmented_ratios(trace, obs, params):
+    """(T,) the augmented-MCL phi each step started from: ``adaptive_ratio`` of the likelihood
+    averages before the step, rebuilt on the host from ``trace.mean_log_likelihood`` with the
+    library's own recursion (``update_likelihood_averages``)."""
+    has_data = np.asarray(obs.valid).any(axis=1)
+    fast = slow = jnp.asarray(0.0)
+    ratios = []
+    for t, mean_ll in enumerate(np.asarray(trace.mean_log_likelihood)):
+        ratios.append(float(proposal.adaptive_ratio(fast, slow, params)))
+        fast, slow = proposal.update_likelihood_averages(
+            fast, slow, jnp.asarray(mean_ll), jnp.asarray(has_data[t]), jnp.asarray(t == 0),
+            params)
+    return np.asarray(ratios)
+
+
 def test_adaptive_ratio_rises_on_odometry_fault():
     """Circle sim; the odometry of steps 30-32 over-reports the translation by 0.15 m (wheel
     slip, 7 motion sigmas). Paired with the fault-free run under the same key (identical up to
-    step 30), the phi used at steps 31-33 (from the averages before each step) is higher by at
-    least 0.1 on average, and phi stays in [mixture_min, mixture_max] throughout.
+    step 29; from step 30 the fault's own control enters phi through the motion draws'
+    efficiency), the augmented-MCL phi at steps 31-33 (from the likelihood averages before
+    each step) is higher by at least 0.1 on average. The phi the particles used (their mean,
+    ``trace.mixture_ratio``) never falls below that floor and stays in [mixture_min,
+    mixture_max]; with this accurate lidar it sits near phi_max already without the fault
+    (the efficiency term), and the fault takes it to phi_max.
 
     The single-run signal is weak: fault-free spikes reach 0.5-0.7 (likelihood_rate_fast=0.5),
     so the comparison is paired rather than against a threshold (see the report)."""
@@ -348,21 +367,25 @@ def test_adaptive_ratio_rises_on_odometry_fault():
                           mixture_mode="adaptive")
     params = default_params(rot1_noise=tuple(table[0]), trans_noise=tuple(table[1]),
                             rot2_noise=tuple(table[2]), max_range=SENSOR_RANGE)
-    ratios = []
+    ratios, floors = [], []
     for control_sequence in (controls, faulty):
         _, trace = run_filter(config, jax.random.key(0), params,
                               jnp.asarray(control_sequence, jnp.float32), obs,
                               initial_pose=jnp.asarray(truth[0], jnp.float32))
         ratio = np.asarray(trace.mixture_ratio)
+        floor = _augmented_ratios(trace, obs, params)
         assert np.all(np.isfinite(ratio))
         assert np.all(ratio >= 0.05 - 1e-7) and np.all(ratio <= 0.9 + 1e-7)
+        assert np.all(ratio >= floor - 1e-6)
         assert np.all(np.isfinite(np.asarray(trace.mean_pose)))
         assert int(np.asarray(trace.weights_reset).sum()) == 0
         ratios.append(ratio)
+        floors.append(floor)
     clean, fault = ratios
-    np.testing.assert_array_equal(clean[:31], fault[:31])
-    rise = fault[31:34].mean() - clean[31:34].mean()
-    assert rise > 0.1, (rise, np.round(clean[28:36], 2), np.round(fault[28:36], 2))
+    np.testing.assert_array_equal(clean[:30], fault[:30])
+    rise = floors[1][31:34].mean() - floors[0][31:34].mean()
+    assert rise > 0.1, (rise, np.round(floors[0][28:36], 2), np.round(floors[1][28:36], 2))
+    np.testing.assert_allclose(fault[30:33], 0.9, atol=1e-6)
 
 
 # ---------------------------------------------------------------------------------------------

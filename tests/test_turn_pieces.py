@@ -128,7 +128,7 @@ def _far_turn_case(turn_pieces):
 @pytest.mark.parametrize("turn_pieces", [0, 8])
 def test_a_far_turn_is_proposed_at_the_truth_only_with_turn_pieces(turn_pieces):
     config, params, state, control, obs, truth = _far_turn_case(turn_pieces)
-    poses, _, correction, used_obs = jax.jit(
+    poses, _, correction, used_obs, _ = jax.jit(
         lambda key: propose(config, key, params, state.particles, control, obs,
                              jnp.float32(1.0), jnp.asarray(False)))(jax.random.PRNGKey(0))
     near = np.hypot(*(np.asarray(poses[:, :2]) - truth[:2]).T) < 0.02

@@ -45,7 +45,10 @@ class FilterConfig:
         than the motion proposal, and about as often on smooth ones (docs/results.md,
         proposal_defaults). The seed paper's FastSLAM is ``proposal="motion"``,
         ``anchor_empty_map=False`` and ``motion_outlier_probability=0``.
-      mixture_mode: ``fixed`` ratio phi or ``adaptive`` (only used by the mixture proposal).
+      mixture_mode: ``fixed`` ratio phi or ``adaptive`` (only used by the mixture proposal):
+        a phi per particle that rises after a drop of the observation likelihood and where
+        the motion draws would rarely land where the observations put the pose
+        (``step_propose.particle_ratio``).
       resampling: one of ``RESAMPLINGS``.
       boundary: ``hard`` visibility limit or ``loose`` airlock (Geiser et al. 2023, section 3.1).
       association_window: 0 (default) matches observations against every slot; N > 0 only

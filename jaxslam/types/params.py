@@ -93,7 +93,7 @@ class Params(NamedTuple):
       ess_threshold: resample when ESS < ess_threshold * P.
     Mixture proposal (Geiser et al. 2023, section 5.2):
       mixture_ratio: phi, the probability of drawing a particle from the observation proposal.
-      mixture_min / mixture_max: bounds of the adaptive phi.
+      mixture_min / mixture_max: bounds of the adaptive phi (``step_propose.particle_ratio``).
       likelihood_rate_fast / likelihood_rate_slow: smoothing rates of the short- and long-term
         average observation likelihood that drive the adaptive phi.
     """
