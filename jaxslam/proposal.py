@@ -19,8 +19,11 @@ and the importance weight is corrected by
     log w += log p_motion(x) - log((1 - phi) p_motion(x) + phi q_obs(x))
 
 evaluated at the sampled pose, so the filter targets the same posterior for every phi.
-Adaptive phi follows short- and long-term averages of the observation log-likelihood
-(as in augmented MCL): phi = clip(phi_min + (phi_max - phi_min)(1 - exp(fast - slow))).
+The adaptive phi is per particle: it rises after a drop of the short-term average of the
+observation log-likelihood below the long-term one (as in augmented MCL,
+``adaptive_ratio``), and where the particle's motion draws would rarely land where its
+observation proposal puts the pose (``motion_draw_efficiency``, ``coverage_ratio``;
+``step_propose.particle_ratio`` combines them).
 
 Shapes are for ONE particle: pose (3,), landmark arrays (M,), observations (K,).
 """
@@ -336,51 +339,64 @@ def adaptive_ratio(likelihood_fast, likelihood_slow, params: Params):
     return jnp.clip(ratio, params.mixture_min, params.mixture_max)
 
 
-def moment_matched(proposal, centre):
-    """Mean offset and covariance of an ``ObservationProposal`` or ``PieceMixture`` about
-    ``centre`` (3,): delta_j = mu_j - centre (heading wrapped), delta = sum_j w_j delta_j,
-    B = sum_j w_j (C_j + delta_j delta_j^T) - delta delta^T. Returns delta (3,), B (3, 3)."""
-    if isinstance(proposal, PieceMixture):
-        means, chols, weights = proposal.means, proposal.chols, jnp.exp(proposal.log_weights)
-    else:
-        means, chols = proposal.mean[None], proposal.chol[None]
-        weights = jnp.ones((1,), proposal.mean.dtype)
-    offsets = means - centre[None, :]
-    offsets = offsets.at[:, 2].set(wrap_angle(offsets[:, 2]))
-    delta = weights @ offsets
-    second = jnp.einsum("j,jab,jcb->ac", weights, chols, chols) + jnp.einsum(
-        "j,ja,jb->ab", weights, offsets, offsets)
-    return delta, second - jnp.outer(delta, delta)
-
-
 def motion_draw_efficiency(delta, prior_cov, posterior_cov):
-    """eta in [0, 1]: the expected effective-sample fraction of draws from the motion prior
-    p = N(0, A) weighed toward the proposal's posterior q = N(delta, B) (all (3,) / (3, 3)).
+    """eta in [0, 1]: the expected effective-sample fraction of draws from a Gaussian motion
+    prior p = N(0, A) weighed toward the proposal's posterior q = N(delta, B) (all (3,) /
+    (3, 3)).
 
-    eta = 1 / E_p[(q / p)^2] (Kong's ESS of importance weights w = q / p, whose mean is 1):
+    eta = 1 / E_p[(q / p)^2] (Kong's ESS of importance weights w = q / p, whose mean is 1).
+    Completing the square in int q^2 / p, with C^-1 = 2 B^-1 - A^-1 = B^-1 (2A - B) A^-1:
 
-        E_p[(q / p)^2] = det(A)^1/2 det(C)^1/2 / det(B) exp(2 u^T C u - delta^T u),
-        C^-1 = 2 B^-1 - A^-1,   u = B^-1 delta.
+        log E_p[(q / p)^2] = log det A - (log det B + log det(2A - B)) / 2
+                             + delta^T (2A - B)^-1 delta,
 
-    eta = 1 when B = A and delta = 0 (the observations add nothing); eta -> 0 when B is much
-    tighter than A or delta far out in A's tail: motion draws then rarely land where the
-    observations put the pose. Where C^-1 is not positive definite (B wider than 2A in some
-    direction) E_p[(q / p)^2] is infinite and eta = 0.
+    a form that needs no inverse of the (often tiny) B. eta = 1 when B = A and delta = 0
+    (the observations add nothing); eta -> 0 when B is much tighter than A or delta far out
+    in A's tail: motion draws then rarely land where the observations put the pose. Where
+    2A - B is not positive definite (B wider than 2A in some direction) E_p[(q / p)^2] is
+    infinite and eta = 0.
     """
-    prior_inv, prior_log_det = spd_inverse3(prior_cov)
-    posterior_inv, posterior_log_det = spd_inverse3(posterior_cov)
-    chol_c_inv = cholesky3(2.0 * posterior_inv - prior_inv)
-    u = posterior_inv @ delta
-    white = solve_lower3(chol_c_inv, u)  # u^T C u = |L^-1 u|^2 with C^-1 = L L^T
-    log_second_moment = (0.5 * prior_log_det - 0.5 * log_det_from_cholesky3(chol_c_inv)
-                         - posterior_log_det + 2.0 * jnp.sum(white**2) - delta @ u)
+    chol_wide = cholesky3(2.0 * prior_cov - posterior_cov)
+    white = solve_lower3(chol_wide, delta)
+    log_second_moment = (log_det_from_cholesky3(cholesky3(prior_cov))
+                         - 0.5 * log_det_from_cholesky3(cholesky3(posterior_cov))
+                         - 0.5 * log_det_from_cholesky3(chol_wide) + jnp.sum(white**2))
     eta = jnp.exp(-jnp.maximum(log_second_moment, 0.0))
     return jnp.where(jnp.isfinite(log_second_moment), eta, 0.0)
 
 
+def piece_draw_efficiency(gaussian: ObservationProposal, centre, prior_cov):
+    """eta () of one prior piece N(centre (3,), prior_cov (3, 3)) toward its own FastSLAM 2.0
+    Gaussian: ``motion_draw_efficiency`` with delta = mean - centre (heading wrapped) and
+    B = L L^T."""
+    delta = gaussian.mean - centre
+    delta = delta.at[2].set(wrap_angle(delta[2]))
+    return motion_draw_efficiency(delta, prior_cov, gaussian.chol @ gaussian.chol.T)
+
+
+def mixture_draw_efficiency(piece_efficiency, log_prior, log_weights):
+    """A lower bound on eta () for draws from the motion prior p = sum_j pi_j p_j weighed
+    toward the piece mixture q = sum_j w_j q_j, q_j the Gaussian of prior piece j.
+
+    By (sum_j a_j)^2 / sum_j b_j <= sum_j a_j^2 / b_j (Cauchy-Schwarz), q^2 / p <=
+    sum_j (w_j q_j)^2 / (pi_j p_j), so E_p[(q / p)^2] <= sum_j (w_j^2 / pi_j) / eta_j and
+
+        eta >= 1 / sum_j exp(2 log w_j - log pi_j - log eta_j),
+
+    exact for one piece; a piece of weight 0 adds nothing. When the observations add nothing
+    (q_j = p_j, w = pi) the bound is 1.
+
+    Args: piece_efficiency (J,) eta_j (``piece_draw_efficiency``); log_prior (J,) log pi_j;
+      log_weights (J,) log w_j (``PieceMixture.log_weights``).
+    """
+    terms = 2.0 * log_weights - log_prior - jnp.log(piece_efficiency)
+    terms = jnp.where(jnp.isneginf(log_weights), -jnp.inf, terms)
+    return jnp.minimum(jnp.exp(-jax.scipy.special.logsumexp(terms)), 1.0)
+
+
 def coverage_ratio(efficiency, params: Params):
-    """phi = phi_min + (phi_max - phi_min) (1 - eta): the observation proposal takes the share
-    of draws that the motion prior would waste (``motion_draw_efficiency`` eta)."""
+    """() phi = phi_min + (phi_max - phi_min) (1 - eta) from eta (): the observation proposal
+    takes the share of draws that the motion prior would waste (``motion_draw_efficiency``)."""
     return params.mixture_min + (params.mixture_max - params.mixture_min) * (1.0 - efficiency)
 
 
@@ -402,11 +418,12 @@ __all__ = [
     "coverage_ratio",
     "gaussian_pose_log_density",
     "mixture_log_correction",
+    "mixture_draw_efficiency",
     "mixture_sample",
-    "moment_matched",
     "motion_draw_efficiency",
     "motion_pose_covariance",
     "observation_proposal",
+    "piece_draw_efficiency",
     "predict_pose",
     "relinearised_proposal",
     "sample_gaussian_pose",

@@ -58,29 +58,23 @@ def mixture_ratio(config: FilterConfig, params: Params, state: FilterState):
     return jnp.asarray(params.mixture_ratio, state.log_weight.dtype)
 
 
-def particle_ratio(config: FilterConfig, params: Params, particle: Particles, x_hat, control,
-                   gaussian, ratio):
-    """() phi of one particle: ``ratio`` (), except for the ``adaptive`` mixture, where
+def particle_ratio(config: FilterConfig, params: Params, efficiency, ratio):
+    """() phi of one particle: ``ratio`` () for the fixed mixture (and the other proposals);
+    for the ``adaptive`` mixture
 
-        phi_i = max(phi_aug, phi_min + (phi_max - phi_min) (1 - eta_i)),
+        phi_i = clip(max(phi_aug, phi_min + (phi_max - phi_min) (1 - eta_i)), phi_min, phi_max),
 
     phi_aug = ``ratio`` the augmented-MCL phi of the likelihood averages (Thrun, Burgard and
     Fox, Probabilistic Robotics, table 8.3: it rises after a sudden drop of the likelihood)
-    and eta_i the expected effective-sample fraction of this particle's motion draws
-    weighed toward its observation proposal (``proposal.motion_draw_efficiency``, the motion
-    prior N(x_hat, Sigma_u) and the proposal moment-matched). The second term answers the
-    regime of an accurate sensor and poor odometry, where the likelihood stays low at every
-    step, so phi_aug stays at phi_min, while motion draws land far from where the
-    observations put the pose (eta near 0). A particle without a match takes a motion draw
-    whatever phi is.
+    and eta_i = ``efficiency`` () the expected effective-sample fraction of this particle's
+    motion draws weighed toward its observation proposal (``_observation_gaussian``). The
+    second term answers the regime of an accurate sensor and poor odometry, where the
+    likelihood stays low at every step, so phi_aug stays at phi_min, while motion draws land
+    far from where the observations put the pose (eta near 0). A particle without a match
+    takes a motion draw whatever phi is.
     """
     if not (config.proposal == "mixture" and config.mixture_mode == "adaptive"):
         return ratio
-    prior_cov = proposal.motion_pose_covariance(particle.pose, control, params,
-                                                config.motion_model)
-    prior_cov = prior_cov + proposal.pose_jitter(prior_cov) * jnp.eye(3, dtype=prior_cov.dtype)
-    delta, posterior_cov = proposal.moment_matched(gaussian, x_hat)
-    efficiency = proposal.motion_draw_efficiency(delta, prior_cov, posterior_cov)
     coverage = proposal.coverage_ratio(efficiency, params).astype(ratio.dtype)
     return jnp.clip(jnp.maximum(ratio, coverage), params.mixture_min, params.mixture_max)
 
@@ -127,7 +121,9 @@ def _burst_pieces(config, params, particle: Particles, x_hat, control, obs):
     new-landmark likelihood). With ``burst_turn_pieces`` n > 0 the burst's mass is shared
     half and half between its Gaussian and the 2n + 1 turn pieces of ``proposal.turn_pieces``,
     each associated and linearised at its own centre. Returns (``PieceMixture``, the pieces'
-    ``Association`` stacked on a leading (J,) axis).
+    ``Association`` stacked on a leading (J,) axis, the motion draws' efficiency () toward
+    the mixture: ``proposal.mixture_draw_efficiency`` over the pieces, the burst mixture
+    (with its turn pieces) standing for the motion draws).
     """
     motion = config.motion_model
 
@@ -137,7 +133,8 @@ def _burst_pieces(config, params, particle: Particles, x_hat, control, obs):
         unexplained = jnp.sum(jnp.where(obs.valid & (found.match < 0),
                                         ekf.unexplained_log_likelihood(obs.z[:, 0], params),
                                         0.0))
-        return gaussian._replace(log_evidence=gaussian.log_evidence + unexplained), found
+        return (gaussian._replace(log_evidence=gaussian.log_evidence + unexplained), found,
+                proposal.piece_draw_efficiency(gaussian, centre, cov))
 
     pieces = [piece(x_hat, proposal.motion_pose_covariance(particle.pose, control, params,
                                                            motion, factor))
@@ -145,31 +142,40 @@ def _burst_pieces(config, params, particle: Particles, x_hat, control, obs):
     eps = params.motion_outlier_probability
     log_burst = jnp.log(jnp.maximum(eps, 0.0))
     log_prior = jnp.stack([jnp.log1p(-eps), log_burst])
-    gaussians = proposal.stack_proposals([g for g, _ in pieces])
-    founds = jax.tree.map(lambda *leaves: jnp.stack(leaves), *[f for _, f in pieces])
+    gaussians = proposal.stack_proposals([g for g, _, _ in pieces])
+    founds = jax.tree.map(lambda *leaves: jnp.stack(leaves), *[f for _, f, _ in pieces])
+    efficiencies = jnp.stack([e for _, _, e in pieces])
     if config.burst_turn_pieces > 0:
         centres, covs, log_mass = proposal.turn_pieces(
             particle.pose, control, params, motion, config.burst_turn_pieces,
             config.burst_turn_span)
-        turn_gaussians, turn_founds = jax.vmap(piece)(centres, covs)
+        turn_gaussians, turn_founds, turn_efficiencies = jax.vmap(piece)(centres, covs)
         concat = lambda a, b: jnp.concatenate([a, b])
         gaussians = jax.tree.map(concat, gaussians, turn_gaussians)
         founds = jax.tree.map(concat, founds, turn_founds)
+        efficiencies = concat(efficiencies, turn_efficiencies)
         half = log_burst + jnp.log(0.5)
         log_prior = jnp.concatenate([jnp.stack([log_prior[0], half]), half + log_mass])
-    return proposal.piece_mixture(gaussians, log_prior), founds
+    mixture = proposal.piece_mixture(gaussians, log_prior)
+    return mixture, founds, proposal.mixture_draw_efficiency(efficiencies, log_prior,
+                                                             mixture.log_weights)
 
 
 def _observation_gaussian(config, params, particle: Particles, x_hat, control, obs):
     """FastSLAM 2.0 proposal of one particle at x_hat (3,): (Gaussian or piece mixture, the
-    association at x_hat (leading (J,) axis for the pieces))."""
+    association at x_hat (leading (J,) axis for the pieces), the expected effective-sample
+    fraction () of motion draws weighed toward it (``proposal.piece_draw_efficiency``; without
+    ``burst_proposal`` the motion prior is taken as the one Gaussian N(x_hat, Sigma_u) with the
+    bursts' mean variance). Outputs nobody reads (the efficiency outside the adaptive
+    mixture) are dropped by XLA."""
     if config.burst_proposal:
         return _burst_pieces(config, params, particle, x_hat, control, obs)
     pose_cov = proposal.motion_pose_covariance(particle.pose, control, params,
                                                config.motion_model)
     found = associate(config, params, particle, x_hat, obs,
                       _matching_cov(config, params, pose_cov))
-    return _relinearised(config, params, particle, x_hat, pose_cov, obs, found), found
+    gaussian = _relinearised(config, params, particle, x_hat, pose_cov, obs, found)
+    return gaussian, found, proposal.piece_draw_efficiency(gaussian, x_hat, pose_cov)
 
 
 def _relinearised(config, params, particle: Particles, x_hat, pose_cov, obs, found):
@@ -189,7 +195,8 @@ def _relinearised(config, params, particle: Particles, x_hat, pose_cov, obs, fou
 def propose(config: FilterConfig, key, params: Params, particles: Particles, control,
             obs: Observations, ratio, keep_pose) -> Proposal:
     """Stage 1 (with stage 2 at the proposed poses): x_t^i ~ (1 - phi) p(x | x_{t-1}, u)
-    + phi q(x | x_{t-1}, u, z) for every particle, phi = ``ratio`` ().
+    + phi_i q(x | x_{t-1}, u, z) for every particle: phi_i = ``ratio`` (), or for the
+    adaptive mixture each particle's own phi with ``ratio`` as its floor (``particle_ratio``).
 
     ``keep_pose`` () bool (a masked control: ``control`` is then 0 and ``ratio`` 0): every
     particle keeps its pose, is associated there and gets correction 0; the draws are still
@@ -206,9 +213,9 @@ def propose(config: FilterConfig, key, params: Params, particles: Particles, con
 
     def one(k, particle, motion_sample):
         x_hat = predict_pose(particle.pose, control, params, config.motion_model)
-        gaussian, found = _observation_gaussian(config, params, particle, x_hat, control, obs)
-        phi = jnp.where(keep_pose, ratio, particle_ratio(config, params, particle, x_hat,
-                                                         control, gaussian, ratio))
+        gaussian, found, efficiency = _observation_gaussian(config, params, particle, x_hat,
+                                                            control, obs)
+        phi = jnp.where(keep_pose, ratio, particle_ratio(config, params, efficiency, ratio))
         pose, used_obs, piece = proposal.mixture_sample(k, motion_sample, gaussian, phi)
         if config.burst_proposal:
             found = jax.tree.map(lambda leaf: leaf[piece], found)

@@ -1,11 +1,11 @@
 """The adaptive mixture's per-particle phi from the motion draws' expected effective sample
-size (``proposal.motion_draw_efficiency``, ``proposal.moment_matched``,
-``step_propose.particle_ratio``).
+size (``proposal.motion_draw_efficiency``, ``proposal.piece_draw_efficiency``,
+``proposal.mixture_draw_efficiency``, ``step_propose.particle_ratio``).
 
 References are plain NumPy float64: the second moment E_p[(q / p)^2] of the importance weights
-of motion draws p = N(0, A) toward q = N(delta, B) in closed form with ``np.linalg``, checked in
-turn against a Monte Carlo average with a fixed seed; the mixture's mean and covariance by
-the law of total variance over its pieces.
+of motion draws p = N(0, A) toward q = N(delta, B) in closed form with ``np.linalg`` (completing
+the square, with the inverse of B), checked in turn against a Monte Carlo average with a fixed
+seed; for piece mixtures, Monte Carlo draws from the mixture prior.
 """
 import dataclasses
 
@@ -16,7 +16,8 @@ import pytest
 
 from jaxslam import proposal
 from jaxslam.filter import make_filter
-from jaxslam.step_propose import particle_ratio, propose
+from jaxslam.motion import predict_pose
+from jaxslam.step_propose import _observation_gaussian, particle_ratio, propose
 from jaxslam.types import FilterConfig, Observations, default_params
 from mapped_state import mapped_state  # tests/ is on sys.path
 
@@ -31,6 +32,13 @@ def _reference_second_moment(delta, prior, posterior):
     exponent = 0.5 * m @ np.linalg.solve(c, m) - delta @ posterior_inv @ delta
     return (np.sqrt(np.linalg.det(prior) * np.linalg.det(c)) / np.linalg.det(posterior)
             * np.exp(exponent))
+
+
+def _log_normal(x, mean, cov):
+    """(n,) log N(x; mean, cov) of rows x (n, 3), float64."""
+    diff = x - mean
+    return (-0.5 * np.einsum("ni,ij,nj->n", diff, np.linalg.inv(cov), diff)
+            - 0.5 * np.log(np.linalg.det(2 * np.pi * cov)))
 
 
 def _cases():
@@ -67,13 +75,7 @@ def test_the_reference_is_the_importance_weights_second_moment():
     delta, posterior = np.array([0.03, -0.02, 0.01]), 0.6 * A
     rng = np.random.default_rng(0)
     x = rng.multivariate_normal(np.zeros(3), A, size=400_000)
-
-    def log_normal(x, mean, cov):
-        diff = x - mean
-        return (-0.5 * np.einsum("ni,ij,nj->n", diff, np.linalg.inv(cov), diff)
-                - 0.5 * np.log(np.linalg.det(2 * np.pi * cov)))
-
-    w = np.exp(log_normal(x, delta, posterior) - log_normal(x, np.zeros(3), A))
+    w = np.exp(_log_normal(x, delta, posterior) - _log_normal(x, np.zeros(3), A))
     estimate = np.mean(w**2)
     standard_error = np.std(w**2) / np.sqrt(w.size)
     want = _reference_second_moment(delta, A, posterior)
@@ -84,8 +86,9 @@ def test_the_reference_is_the_importance_weights_second_moment():
 
 def test_efficiency_edges_and_vmap():
     """eta = 1 for q = p; falls with a tighter q (B = A / 100: C = A / 199, so
-    eta = det(B) / (det(A) det(C))^1/2 = 199^1.5 / 100^3) and with an offset; 0 where B is wider than 2 A in some direction (the
-    weights' second moment is infinite); the vmapped call equals the one-by-one calls."""
+    eta = det(B) / (det(A) det(C))^1/2 = 199^1.5 / 100^3) and with an offset; 0 where B is
+    wider than 2 A in some direction (the weights' second moment is infinite); the vmapped
+    call equals the one-by-one calls."""
     prior = jnp.asarray(A)
     eff = proposal.motion_draw_efficiency
     assert float(eff(jnp.zeros(3), prior, prior)) == pytest.approx(1.0, abs=1e-12)
@@ -99,31 +102,54 @@ def test_efficiency_edges_and_vmap():
     assert batched[0] > batched[1] > batched[2] > 0.0
 
 
-def test_moment_matched_against_the_law_of_total_variance():
-    """A three-piece mixture whose means straddle the heading wrap at pi: offsets from the
-    centre wrapped, mean and covariance as in NumPy float64 (1e-12)."""
-    rng = np.random.default_rng(3)
-    centre = np.array([1.0, 2.0, np.pi - 0.01])
-    means = centre + np.array([[0.01, 0.0, 0.02], [-0.02, 0.01, -0.01], [0.0, 0.03, 0.05]])
-    means[:, 2] = np.angle(np.exp(1j * means[:, 2]))  # wrapped into (-pi, pi]
-    chols = np.stack([np.linalg.cholesky(np.diag(rng.uniform(1e-4, 1e-3, 3))) for _ in range(3)])
-    weights = np.array([0.5, 0.3, 0.2])
-    mixture = proposal.PieceMixture(jnp.asarray(means), jnp.asarray(chols),
-                                    jnp.asarray(np.log(weights)), jnp.asarray(True))
-    delta, cov = jax.jit(proposal.moment_matched)(mixture, jnp.asarray(centre))
-    offsets = means - centre
-    offsets[:, 2] = np.angle(np.exp(1j * offsets[:, 2]))
-    want_delta = weights @ offsets
-    spread = offsets - want_delta
-    want_cov = (np.einsum("j,jab,jcb->ac", weights, chols, chols)
-                + np.einsum("j,ja,jb->ab", weights, spread, spread))
-    np.testing.assert_allclose(np.asarray(delta), want_delta, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(cov), want_cov, atol=1e-12)
-    single = proposal.ObservationProposal(jnp.asarray(means[0]), jnp.asarray(chols[0]),
-                                          jnp.asarray(True))
-    delta1, cov1 = proposal.moment_matched(single, jnp.asarray(centre))
-    np.testing.assert_allclose(np.asarray(delta1), offsets[0], atol=1e-12)
-    np.testing.assert_allclose(np.asarray(cov1), chols[0] @ chols[0].T, atol=1e-15)
+def test_mixture_bound_is_exact_for_one_piece_and_one_when_nothing_is_learnt():
+    """One piece: the bound is eta itself. Posterior pieces equal to the prior pieces and
+    weights equal to the prior masses: 1 (float rounding). A piece of weight 0 (log -inf,
+    also with prior mass 0) adds nothing."""
+    bound = jax.jit(proposal.mixture_draw_efficiency)
+    assert float(bound(jnp.asarray([0.3]), jnp.asarray([0.0]), jnp.asarray([0.0]))) == (
+        pytest.approx(0.3, rel=1e-12))
+    log_prior = jnp.log(jnp.asarray([0.95, 0.05]))
+    assert float(bound(jnp.ones(2), log_prior, log_prior)) == pytest.approx(1.0, rel=1e-12)
+    with_empty = bound(jnp.asarray([0.3, 0.5, 0.0]), jnp.asarray([0.0, -jnp.inf, -jnp.inf]),
+                       jnp.asarray([0.0, -jnp.inf, -jnp.inf]))
+    assert float(with_empty) == pytest.approx(0.3, rel=1e-12)
+
+
+def test_mixture_bound_lies_below_the_monte_carlo_efficiency():
+    """Prior 0.95 N(0, A) + 0.05 N(0, 64 A) (the default bursts), toward a two-piece posterior
+    (core piece pulled in and shrunk, burst piece offset): the library's per-piece etas and the
+    bound against 400,000 draws from the mixture prior with a fixed seed. The Monte Carlo eta
+    (its standard error under 2 %) is at least the bound (4 % allowed for that error). The
+    bound is loose where the wide burst piece also covers the core piece's posterior:
+    measured 0.062 against 0.33 here, asserted within a factor of 10."""
+    prior_covs = [A, 64.0 * A]
+    post_means = [np.array([0.02, -0.01, 0.004]), np.array([0.1, 0.05, 0.02])]
+    post_covs = [0.3 * A, 2.0 * A]
+    log_prior = np.log([0.95, 0.05])
+    log_weights = np.log([0.9, 0.1])
+    etas = [float(proposal.piece_draw_efficiency(
+        proposal.ObservationProposal(jnp.asarray(m), jnp.asarray(np.linalg.cholesky(c)),
+                                     jnp.asarray(True)), jnp.zeros(3), jnp.asarray(p)))
+            for m, c, p in zip(post_means, post_covs, prior_covs)]
+    for eta, m, c, p in zip(etas, post_means, post_covs, prior_covs):
+        np.testing.assert_allclose(eta, 1.0 / _reference_second_moment(m, p, c), rtol=1e-9)
+    bound = float(proposal.mixture_draw_efficiency(jnp.asarray(etas), jnp.asarray(log_prior),
+                                                   jnp.asarray(log_weights)))
+    rng = np.random.default_rng(1)
+    piece = rng.random(400_000) < 0.05
+    x = np.where(piece[:, None], rng.multivariate_normal(np.zeros(3), prior_covs[1], 400_000),
+                 rng.multivariate_normal(np.zeros(3), prior_covs[0], 400_000))
+    log_p = np.logaddexp(*[lp + _log_normal(x, np.zeros(3), c)
+                           for lp, c in zip(log_prior, prior_covs)])
+    log_q = np.logaddexp(*[lw + _log_normal(x, m, c)
+                           for lw, m, c in zip(log_weights, post_means, post_covs)])
+    w = np.exp(log_q - log_p)
+    second = np.mean(w**2)
+    assert np.std(w**2) / np.sqrt(w.size) < 0.02 * second
+    mc_eta = 1.0 / second
+    assert bound <= mc_eta * 1.04, (bound, mc_eta)
+    assert bound >= 0.1 * mc_eta, (bound, mc_eta)
 
 
 # A mapped tree 6 m ahead; 6x Table 1 odometry; a 5 mm / 0.5 mrad sensor: the observation
@@ -153,9 +179,11 @@ def _proposed(config, params, state, control, obs, ratio=0.05, keep=False, key=0
 
 def test_accurate_sensor_takes_phi_max_and_draws_that_share_from_the_observations():
     """With the likelihood averages at rest (augmented-MCL phi = phi_min = 0.05) an accurate
-    sensor still gives every particle phi near phi_max = 0.9: its motion draws' efficiency
-    is under 1 % (measured 0.45 %: phi = 0.896). Over 4 keys x 64 particles the share drawn
-    from the observations is within 3.5 binomial sigmas of that phi (sigma = 0.019)."""
+    sensor still gives every particle a phi near phi_max = 0.9: the observations pin the
+    along-track position (0.12 m motion std) to 5 mm, so the motion draws' efficiency is
+    about 3 % (measured phi 0.874; asserted: efficiency under 6 %). Over 4 keys x 64
+    particles the share drawn from the observations is within 3.5 binomial sigmas of that
+    phi (sigma about 0.02)."""
     config, params, state, control, obs = _regime()
     shares, phis = [], []
     for key in range(4):
@@ -163,25 +191,25 @@ def test_accurate_sensor_takes_phi_max_and_draws_that_share_from_the_observation
         phis.append(np.asarray(out.ratio))
         shares.append(np.mean(np.asarray(out.used_observation)))
     phi = float(np.mean(phis))
-    assert 0.05 + 0.85 * 0.99 < phi <= 0.9, phi
+    assert 0.05 + 0.85 * 0.94 < phi <= 0.9, phi
     assert abs(np.mean(shares) - phi) < 3.5 * np.sqrt(phi * (1 - phi) / 256)
 
 
 def test_a_sensor_no_better_than_odometry_keeps_the_floor():
     """A sensor 400x worse (2 m / 0.2 rad) adds almost nothing to the motion prior: the
-    efficiency stays near 1, phi near phi_min (below 0.2), and never under the augmented-MCL
-    floor passed in (0.3 here)."""
+    efficiency stays near 1 (measured 0.995, phi 0.054; asserted phi < 0.07, efficiency
+    above 0.976), and phi never falls under the augmented-MCL floor passed in (0.3 here)."""
     config, params, state, control, obs = _regime(sensor_scale=400.0)
     low = np.asarray(_proposed(config, params, state, control, obs, ratio=0.05).ratio)
-    assert np.all(low < 0.2) and np.all(low >= 0.05), low
+    assert np.all(low < 0.07) and np.all(low >= 0.05), low
     floor = np.asarray(_proposed(config, params, state, control, obs, ratio=0.3).ratio)
     assert np.all(floor >= 0.3 - 1e-7)
 
 
 def test_fixed_mixture_and_kept_poses_are_unchanged():
-    """The fixed mixture uses the ratio it is given for every particle (its draws and poses
-    are those of the code before the per-particle phi); a kept pose (masked control) uses
-    the ratio passed, 0, in the adaptive mode too, and draws nothing from the observations."""
+    """The fixed mixture uses the ratio it is given for every particle; a kept pose (masked
+    control) uses the ratio passed, 0, in the adaptive mode too, and draws nothing from the
+    observations."""
     config, params, state, control, obs = _regime(mixture_mode="fixed")
     fixed = _proposed(config, params, state, control, obs, ratio=0.5)
     np.testing.assert_array_equal(np.asarray(fixed.ratio), 0.5)
@@ -193,37 +221,40 @@ def test_fixed_mixture_and_kept_poses_are_unchanged():
 
 def test_particle_ratio_under_vmap_over_params():
     """One compiled call over stacked phi_max values gives each value's own phi,
-    phi_min + (phi_max - phi_min) (1 - eta), with the same eta for all three."""
+    phi_min + (phi_max - phi_min) (1 - eta), with the same eta for all three (the
+    accurate-sensor case: eta under 6 %)."""
     config, params, state, control, obs = _regime()
     particle = jax.tree.map(lambda leaf: leaf[0], state.particles)
-    from jaxslam.motion import predict_pose
-    from jaxslam.step_propose import _observation_gaussian
     x_hat = predict_pose(particle.pose, control, params, config.motion_model)
-    gaussian, _ = _observation_gaussian(config, params, particle, x_hat, control, obs)
+    _, _, efficiency = _observation_gaussian(config, params, particle, x_hat, control, obs)
 
     def phi(p):
-        return particle_ratio(config, p, particle, x_hat, control, gaussian, jnp.float32(0.05))
+        return particle_ratio(config, p, efficiency, jnp.float32(0.05))
 
     values = [0.5, 0.7, 0.9]
     stacked = jax.tree.map(lambda *leaves: jnp.stack(leaves),
                            *[params._replace(mixture_max=jnp.float32(v)) for v in values])
     got = np.asarray(jax.jit(jax.vmap(phi))(stacked))
     eta = 1.0 - (got - 0.05) / (np.asarray(values) - 0.05)
-    np.testing.assert_allclose(eta, eta[0], atol=1e-5)
-    assert 0.0 < eta[0] < 0.01
+    np.testing.assert_allclose(eta, float(efficiency), atol=1e-5)
+    assert 0.0 < eta[0] < 0.06
     for value, one in zip(values, got):
         assert float(phi(params._replace(mixture_max=jnp.float32(value)))) == pytest.approx(
             float(one), rel=1e-6)
 
 
 def test_the_step_reports_the_particles_mean_phi():
-    """``StepInfo.mixture_ratio`` is the particles' mean phi, the same as ``propose`` gives
-    them (the step's own key split): near phi_max in the accurate-sensor case whose
-    likelihood averages start at rest (augmented phi 0.05)."""
+    """``StepInfo.mixture_ratio`` is the particles' mean phi, as ``propose`` gives them (phi
+    does not depend on the key): particles moved apart along the track get different
+    efficiencies, so the mean differs from the first particle's phi; near phi_max in this
+    accurate-sensor case whose likelihood averages start at rest (augmented phi 0.05)."""
     config, params, state, control, obs = _regime()
+    offsets = jnp.linspace(-0.3, 0.3, config.num_particles, dtype=state.particles.pose.dtype)
+    state = state._replace(particles=state.particles._replace(
+        pose=state.particles.pose.at[:, 0].add(offsets)))
     filt = make_filter(config)
     _, info = jax.jit(filt.step)(jax.random.PRNGKey(1), state, params, control, obs)
-    direct = _proposed(config, params, state, control, obs)
-    assert float(info.mixture_ratio) == pytest.approx(float(np.mean(np.asarray(direct.ratio))),
-                                                      rel=1e-6)
-    assert 0.89 < float(info.mixture_ratio) <= 0.9
+    ratios = np.asarray(_proposed(config, params, state, control, obs).ratio)
+    assert ratios.max() - ratios.min() > 1e-3, ratios
+    assert float(info.mixture_ratio) == pytest.approx(float(np.mean(ratios)), rel=1e-6)
+    assert 0.8 < float(info.mixture_ratio) <= 0.9

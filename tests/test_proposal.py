@@ -356,7 +356,7 @@ def test_adaptive_ratio_rises_on_odometry_fault():
     each step) is higher by at least 0.1 on average. The phi the particles used (their mean,
     ``trace.mixture_ratio``) never falls below that floor and stays in [mixture_min,
     mixture_max]; with this accurate lidar it sits near phi_max already without the fault
-    (the efficiency term), and the fault takes it to phi_max.
+    (the efficiency term), and the fault takes it to within 1e-3 of phi_max.
 
     The single-run signal is weak: fault-free spikes reach 0.5-0.7 (likelihood_rate_fast=0.5),
     so the comparison is paired rather than against a threshold (see the report)."""
@@ -385,7 +385,7 @@ def test_adaptive_ratio_rises_on_odometry_fault():
     np.testing.assert_array_equal(clean[:30], fault[:30])
     rise = floors[1][31:34].mean() - floors[0][31:34].mean()
     assert rise > 0.1, (rise, np.round(floors[0][28:36], 2), np.round(floors[1][28:36], 2))
-    np.testing.assert_allclose(fault[30:33], 0.9, atol=1e-6)
+    np.testing.assert_allclose(fault[30:33], 0.9, atol=1e-3)
 
 
 # ---------------------------------------------------------------------------------------------
