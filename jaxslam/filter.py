@@ -212,7 +212,7 @@ def _clean_inputs(state: FilterState, params: Params, control, obs: Observations
     return params, control, obs, num_invalid, invalid_control
 
 
-def _step_info(proposed, weights, mapped, resampled, ratio, num_invalid,
+def _step_info(proposed, weights, mapped, resampled, num_invalid,
                invalid_control) -> StepInfo:
     """``StepInfo`` from the stages' results."""
     return StepInfo(
@@ -222,7 +222,7 @@ def _step_info(proposed, weights, mapped, resampled, ratio, num_invalid,
         match_rounds=jnp.max(proposed.association.rounds).astype(jnp.int32),
         num_invalid_obs=num_invalid, num_dropped_births=mapped.num_dropped,
         num_set_aside=mapped.num_set_aside,
-        mixture_ratio=jnp.mean(proposed.ratio).astype(ratio.dtype),
+        mixture_ratio=jnp.mean(proposed.ratio).astype(weights.log_weight.dtype),
         num_observation_draws=jnp.sum(proposed.used_observation).astype(jnp.int32),
         mean_log_likelihood=weights.mean_log_likelihood,
         best_particle=resampled.best_particle, ancestor=resampled.ancestor,
@@ -254,7 +254,7 @@ def _step(config: FilterConfig, key, state: FilterState, params: Params, control
                                      weights.log_weight)
     new_state = FilterState(resampled.particles, resampled.log_weight, weights.likelihood_fast,
                             weights.likelihood_slow, state.step + 1)
-    return new_state, _step_info(proposed, weights, mapped, resampled, ratio, num_invalid,
+    return new_state, _step_info(proposed, weights, mapped, resampled, num_invalid,
                                  invalid_control)
 
 
