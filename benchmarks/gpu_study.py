@@ -41,9 +41,13 @@ import argparse
 import dataclasses
 import json
 import pathlib
+import sys
 import time
 
 import jax
+
+# Time this checkout's code, also when an editable install points at another checkout.
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 PROBE_WIDTH = 32  # runs in the chunk whose compiled program is measured
 MEMORY_FRACTION = 0.5  # of the device's memory a chunk's filter program may take

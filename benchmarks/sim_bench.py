@@ -8,13 +8,18 @@ second call.
 from __future__ import annotations
 
 import argparse
+import pathlib
+import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-import sims
+# Time this checkout's code, also when an editable install points at another checkout.
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+import sims  # noqa: E402
 
 
 def timed(fn, *args):

@@ -18,13 +18,18 @@ Usage:
 from __future__ import annotations
 
 import argparse
+import pathlib
+import sys
 import time
 
 import numpy as np
 
-from jaxslam import metrics, smoothing
-from jaxslam.datasets.odometry import odometry_path
-from jaxslam.types import default_params
+# Time this checkout's code, also when an editable install points at another checkout.
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+from jaxslam import metrics, smoothing  # noqa: E402
+from jaxslam.datasets.odometry import odometry_path  # noqa: E402
+from jaxslam.types import default_params  # noqa: E402
 
 
 def synthetic_drive(steps: int, num_obs: int, num_trees: int, seed: int = 0):

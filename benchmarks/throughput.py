@@ -34,8 +34,19 @@ import time
 import jax
 import numpy as np
 
+# Time this checkout's jaxslam, also when an editable install points at another one (a
+# benchmark started from a git worktree of an older commit would otherwise time main).
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
 PYTHONROBOTICS_STEP_S = 27.4e-3   # PythonRobotics FastSLAM 1, P = 100, 8 landmarks, this CPU
 TARGETS = {"single": 200.0, "batched": 1000.0, "study_particle_steps_per_s": 200e3}
+
+
+def _jaxslam_dir() -> str:
+    """The folder the imported jaxslam comes from (printed, so an A/B shows what it timed)."""
+    import jaxslam
+
+    return str(pathlib.Path(jaxslam.__file__).resolve().parent)
 
 
 def _config(num_particles, max_landmarks, max_obs, proposal):
@@ -184,6 +195,7 @@ def main(argv=None):
     if args.runs < 1 or args.steps < 1 or args.chunk < 1:
         parser.error("--runs, --steps and --chunk must be positive integers")
     print(f"jax {jax.__version__} backend={jax.default_backend()} devices={jax.devices()}; "
+          f"jaxslam from {_jaxslam_dir()}; "
           f"PythonRobotics FastSLAM 1 reference {1e3 * PYTHONROBOTICS_STEP_S:.1f} ms a step")
     rows = []
     if "single" in args.cases:
