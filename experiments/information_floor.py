@@ -47,6 +47,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+# Run this checkout's jaxslam, also when an editable install points at another checkout
+# (an experiment started from a git worktree of an older commit).
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
 from experiments.mixture_regime import regime_params
 from experiments.proposal_study import (clustered_interval, longest_sparse_stretch, make_logs,
                                         point_keys, proposal_settings, run_point, wilson)

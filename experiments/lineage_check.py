@@ -39,12 +39,18 @@ previous identity stood: the pose-map misfit the association refused.
 from __future__ import annotations
 
 import argparse
+import pathlib
+import sys
 import time
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+# Run this checkout's jaxslam, also when an editable install points at another checkout
+# (an experiment started from a git worktree of an older commit).
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from experiments.information_floor import (PURE_GAUSSIAN, RATE_HEADER, dead_reckoning,
                                            filter_errors, rate_row, sparse_rows, write_outputs)

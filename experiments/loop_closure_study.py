@@ -33,10 +33,16 @@ from __future__ import annotations
 
 import argparse
 import functools
+import pathlib
+import sys
 import time
 
 import jax
 import numpy as np
+
+# Run this checkout's jaxslam, also when an editable install points at another checkout
+# (an experiment started from a git worktree of an older commit).
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from experiments.information_floor import (PURE_GAUSSIAN, RATE_HEADER, rate_row,
                                            write_outputs)

@@ -42,6 +42,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+# Run this checkout's jaxslam, also when an editable install points at another checkout
+# (an experiment started from a git worktree of an older commit).
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
 from experiments.proposal_study import (clustered_interval, make_logs, proposal_settings,
                                         wilson)
 from experiments.self_calibration import MAX_RANGE, true_params

@@ -15,10 +15,16 @@ from __future__ import annotations
 
 import argparse
 import ast
+import pathlib
+import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+# Run this checkout's jaxslam, also when an editable install points at another checkout
+# (an experiment started from a git worktree of an older commit).
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from experiments.self_calibration import make_log, score
 from jaxslam.types import FilterConfig, default_params

@@ -20,11 +20,16 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+# Run this checkout's jaxslam, also when an editable install points at another checkout
+# (an experiment started from a git worktree of an older commit).
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam import calibrate
 from jaxslam.filter import run_filter

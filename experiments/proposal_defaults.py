@@ -13,11 +13,17 @@ from __future__ import annotations
 
 import argparse
 import ast
+import pathlib
+import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+# Run this checkout's jaxslam, also when an editable install points at another checkout
+# (an experiment started from a git worktree of an older commit).
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from experiments.mixture_regime import DEFAULT_VARIANTS, regime_params, variant_config
 from experiments.self_calibration import make_log, score, true_params

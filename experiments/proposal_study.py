@@ -26,6 +26,10 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
+# Run this checkout's jaxslam, also when an editable install points at another checkout
+# (an experiment started from a git worktree of an older commit).
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
 from experiments.mixture_regime import regime_params
 from experiments.self_calibration import SIZE, wobbly_loop
 from jaxslam.filter import make_filter, scan_filter

@@ -26,12 +26,17 @@ from __future__ import annotations
 
 import argparse
 import pathlib
+import sys
 import time
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+# Run this checkout's jaxslam, also when an editable install points at another checkout
+# (an experiment started from a git worktree of an older commit).
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam import lineage, metrics
 from jaxslam.calibration_residuals import NOISE_GROUPS, typical_stds

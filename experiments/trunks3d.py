@@ -30,12 +30,18 @@ Run:  python experiments/trunks3d.py [--runs 8] [--steps 44] [--out docs/results
 from __future__ import annotations
 
 import argparse
+import pathlib
+import sys
 import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+# Run this checkout's jaxslam, also when an editable install points at another checkout
+# (an experiment started from a git worktree of an older commit).
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 import sims
 from jaxslam import metrics

@@ -11,9 +11,15 @@ and 2 robot), which is what a user got before the pipeline calibrated.
 from __future__ import annotations
 
 import argparse
+import pathlib
+import sys
 
 import jax
 import numpy as np
+
+# Run this checkout's jaxslam, also when an editable install points at another checkout
+# (an experiment started from a git worktree of an older commit).
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam import pipeline
 from jaxslam.datasets.log_format import RobotLog

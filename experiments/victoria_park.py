@@ -17,12 +17,17 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import sys
 import time
 
 import jax
 import numpy as np
 
 import victoria_park_pipeline as vps  # experiments/ (this script's folder)
+# Run this checkout's jaxslam, also when an editable install points at another checkout
+# (an experiment started from a git worktree of an older commit).
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
 from jaxslam.datasets import victoria_park as vpm
 
 

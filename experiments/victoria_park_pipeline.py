@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import functools
 import pathlib
+import sys
 import time
 import tomllib
 from typing import NamedTuple
@@ -39,6 +40,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
+
+# Run this checkout's jaxslam, also when an editable install points at another checkout
+# (an experiment started from a git worktree of an older commit).
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam import lineage, smoothing
 from jaxslam.host import in_float64
