@@ -225,7 +225,7 @@ def test_a_sensor_no_better_than_odometry_keeps_the_floor():
     assert np.all(floor >= 0.3 - 1e-7)
 
 
-def test_fixed_mixture_and_kept_poses_are_unchanged():
+def test_fixed_mixture_keeps_its_ratio_and_a_kept_pose_draws_nothing():
     """The fixed mixture uses the ratio it is given for every particle; a kept pose (masked
     control) uses the ratio passed, 0, in the adaptive mode too, and draws nothing from the
     observations."""
