@@ -295,7 +295,12 @@ def associate(config: FilterConfig, params: Params, particle: Particles, match_p
 
     ``match_pose`` is the sampled pose for the motion proposal and the motion prediction
     x_hat for the observation and mixture proposals. ``pose_cov`` (3, 3), when given, is
-    added to S for matching only (``ekf.add_pose_uncertainty``); ``predicted`` keeps S.
+    added to S for the gate and the matching only (``ekf.add_pose_uncertainty``);
+    ``predicted`` keeps S. The loose boundary's ring widths w_m = airlock_sigmas
+    sqrt(S_m[range, range]) use S without it: the ring is where the sensor's range ends, which
+    the particle's pose uncertainty does not move. (With it, a burst piece's kappa^2 Sigma_u
+    widened the ring by metres, set aside every observation in the outer part of the range,
+    and left that piece nothing to match: ``tests/test_matching_airlock.py``.)
     """
     slots, local = _window(config, particle, match_pose)
     predicted = ekf.predict_measurements(match_pose, local.landmark_mean, local.landmark_cov,
@@ -304,7 +309,7 @@ def associate(config: FilterConfig, params: Params, particle: Particles, match_p
                        else ekf.add_pose_uncertainty(predicted, pose_cov))
     mahalanobis = ekf.mahalanobis_sq(obs.z, local_predicted)
     mahalanobis = jnp.where(obs.valid[:, None] & local.active[None, :], mahalanobis, jnp.inf)
-    vis = landmarks.visibility(obs.z, obs.valid, local.active, local_predicted, mahalanobis,
+    vis = landmarks.visibility(obs.z, obs.valid, local.active, predicted, mahalanobis,
                                params, config.boundary)
     radius_sq = ekf.radius_distance_sq(obs.radius[:, None], local.landmark_radius[None, :],
                                        local.radius_count[None, :], params)

@@ -349,8 +349,12 @@ def _augmented_ratios(trace, obs, params):
 
 
 def test_adaptive_ratio_rises_on_odometry_fault():
-    """Circle sim; the odometry of steps 30-32 over-reports the translation by 0.15 m (wheel
-    slip, 7 motion sigmas). Paired with the fault-free run under the same key (identical up to
+    """Circle sim; the odometry of steps 30-32 over-reports the translation by 0.5 m (wheel
+    slip, 23 motion sigmas). A slip of 0.15 m (7 sigmas), the case until the loose boundary's
+    ring stopped widening with the pose covariance (``tests/test_matching_airlock.py``), is
+    now matched by the burst piece of the default proposal (kappa 8: 0.17 m std), so the
+    likelihood hardly drops and the augmented term rises by 0.05 only: explaining such slips
+    is the bursts' job. Paired with the fault-free run under the same key (identical up to
     step 29; from step 30 the fault's own control enters phi through the motion draws'
     efficiency), the augmented-MCL phi at steps 31-33 (from the likelihood averages before
     each step) is higher by at least 0.1 on average. The phi the particles used (their mean,
@@ -362,7 +366,7 @@ def test_adaptive_ratio_rises_on_odometry_fault():
     so the comparison is paired rather than against a threshold (see the report)."""
     controls, obs, truth, table = simulate_circle(seed=1)
     faulty = np.asarray(controls).copy()
-    faulty[30:33, 1] += 0.15
+    faulty[30:33, 1] += 0.5  # the augmented term rose by 0.19 when this was written
     config = FilterConfig(num_particles=32, max_landmarks=32, max_obs=8, proposal="mixture",
                           mixture_mode="adaptive")
     params = default_params(rot1_noise=tuple(table[0]), trans_noise=tuple(table[1]),
