@@ -60,7 +60,10 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
 
     Args:
       z: (K, 2); obs_valid: (K,); active: (M,); predicted: (M,) fields;
-      mahalanobis: (K, M) squared distances (+inf for impossible pairs).
+      mahalanobis: (K, M) squared distances (+inf for impossible pairs) under the same S as
+        ``predicted`` (no pose covariance added for matching: the ring's guarantee, that an
+        observation nearer than R_max - w_k cannot gate with a landmark beyond the ring,
+        needs the widths and the distances from one S; ``step_propose.associate``).
     """
     in_min_range = predicted.range >= params.min_range
     saturated = jnp.all(obs_valid)

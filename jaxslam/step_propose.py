@@ -296,20 +296,22 @@ def associate(config: FilterConfig, params: Params, particle: Particles, match_p
     ``match_pose`` is the sampled pose for the motion proposal and the motion prediction
     x_hat for the observation and mixture proposals. ``pose_cov`` (3, 3), when given, is
     added to S for the gate and the matching only (``ekf.add_pose_uncertainty``);
-    ``predicted`` keeps S. The loose boundary's ring widths w_m = airlock_sigmas
-    sqrt(S_m[range, range]) use S without it: the ring is where the sensor's range ends, which
-    the particle's pose uncertainty does not move. (With it, a burst piece's kappa^2 Sigma_u
-    widened the ring by metres, set aside every observation in the outer part of the range,
-    and left that piece nothing to match: ``tests/test_matching_airlock.py``.)
+    ``predicted`` keeps S. The loose boundary is decided with S alone: its ring widths
+    w_m = airlock_sigmas sqrt(S_m[range, range]) and the gate that sets aside an observation
+    that could match a ring landmark (or keeps a landmark from penalties). So an observation
+    nearer than R_max - w_k still cannot pair with a landmark beyond the ring, as
+    ``landmarks`` states, whatever the pose covariance (``tests/test_matching_airlock.py``).
     """
     slots, local = _window(config, particle, match_pose)
     predicted = ekf.predict_measurements(match_pose, local.landmark_mean, local.landmark_cov,
                                          params)
     local_predicted = (predicted if pose_cov is None
                        else ekf.add_pose_uncertainty(predicted, pose_cov))
-    mahalanobis = ekf.mahalanobis_sq(obs.z, local_predicted)
-    mahalanobis = jnp.where(obs.valid[:, None] & local.active[None, :], mahalanobis, jnp.inf)
-    vis = landmarks.visibility(obs.z, obs.valid, local.active, predicted, mahalanobis,
+    pairs = obs.valid[:, None] & local.active[None, :]
+    mahalanobis = jnp.where(pairs, ekf.mahalanobis_sq(obs.z, local_predicted), jnp.inf)
+    boundary_distance = (mahalanobis if pose_cov is None
+                         else jnp.where(pairs, ekf.mahalanobis_sq(obs.z, predicted), jnp.inf))
+    vis = landmarks.visibility(obs.z, obs.valid, local.active, predicted, boundary_distance,
                                params, config.boundary)
     radius_sq = ekf.radius_distance_sq(obs.radius[:, None], local.landmark_radius[None, :],
                                        local.radius_count[None, :], params)

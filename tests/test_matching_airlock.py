@@ -1,12 +1,13 @@
 """The loose boundary's ring when a particle matches at the motion prediction x_hat with the
 motion prior's pose covariance added to S (``match_pose_uncertainty``).
 
-The ring's landmark width is w_m = airlock_sigmas * sqrt(S_m[range, range]) with S_m the
-landmark's and the sensor's covariance alone: the pose covariance added for matching shapes
-the gate, not which landmarks the sensor can see. Before, the pose covariance widened the ring
-too: the burst piece of the motion prior (kappa^2 Sigma_u, kappa = 8, a range std of about
-0.46 m at 6x Table 1 odometry) made w_m about 2.3 m, so every observation of a tree in the
-outer metres of a 12 m range was set aside at that piece, the piece matched nothing, won the
+The loose boundary is decided with S_m, the landmark's and the sensor's covariance alone: the
+ring's width w_m = airlock_sigmas * sqrt(S_m[range, range]) and the gate that sets an
+observation aside when it could match a ring landmark. The pose covariance added for matching
+shapes only the matching gate. Before, it entered both: the burst piece of the motion prior
+(kappa^2 Sigma_u, kappa = 8, at 6x Table 1 odometry) made w_m about 2 m, so every observation
+of a tree in the outer metres of a 12 m range was set aside at that piece (and a ring
+landmark's inflated gate reached observations far inside), the piece matched nothing, won the
 piece mixture with the new-landmark credit of its unmatched observations, and the particle
 drew from the bare burst prior and started a twin of every tree it saw (held-out log 6 of
 the proposal study, step 152: every particle, 3 twins each).
@@ -99,10 +100,10 @@ def test_ring_widths_ignore_the_matching_pose_covariance(factor, transform):
 
 
 def test_ring_widths_under_vmap_over_the_pose_covariance():
-    """One vmapped call over covariance factors 1 ... 400: the same matchable landmarks
-    whatever the factor (the ring follows the sensor and the map only), and the same matches up
-    to the burst piece's 64 (at 400 the gates of neighbouring trees overlap and the matching
-    itself may pair them otherwise)."""
+    """One vmapped call over covariance factors 1 ... 400: the same matchable landmarks, the
+    same observations set aside and the same matches whatever the factor (the boundary follows
+    the sensor and the map only; each observation lies exactly at its landmark's prediction,
+    d2 = 0, so the matching pairs them whatever the gates' overlap)."""
     factors = jnp.asarray([1.0, 4.0, 64.0, 400.0])
     config, params, particle, x_hat, obs, _ = _ring_case(RANGES, 1.0)
 
@@ -111,14 +112,14 @@ def test_ring_widths_under_vmap_over_the_pose_covariance():
                                           factor)
         found = associate(config, params, particle, x_hat, obs,
                           _matching_cov(config, params, pose_cov))
-        return found.visibility.matchable, found.match
+        return found.visibility.matchable, found.visibility.set_aside_obs, found.match
 
-    matchable, match = jax.vmap(run)(factors)
+    matchable, set_aside, match = jax.vmap(run)(factors)
     want = _reference_matchable(np.asarray(RANGES), params)
     for i in range(len(factors)):
         np.testing.assert_array_equal(np.asarray(matchable[i]), want)
-        if factors[i] <= 64.0:
-            np.testing.assert_array_equal(np.asarray(match[i]), np.asarray(match[0]))
+        np.testing.assert_array_equal(np.asarray(set_aside[i]), ~want)
+        np.testing.assert_array_equal(np.asarray(match[i]), [-1, 1, 2, 3, 4, 5, 6])
 
 
 def test_a_turn_burst_at_the_range_edge_keeps_the_trees():
@@ -148,3 +149,22 @@ def test_a_turn_burst_at_the_range_edge_keeps_the_trees():
     heading_error = np.angle(np.exp(1j * (np.asarray(proposed.pose[:, 2]) - truth[2])))
     # The three trees fix the heading to about 0.5 mrad / sqrt(3); 10 mrad is 35 such stds.
     assert np.max(np.abs(heading_error)) < 0.01, heading_error
+
+
+def test_a_ring_landmark_does_not_reach_inner_observations_through_the_pose_covariance():
+    """A landmark in the ring (11.99 m) 0.15 rad from a tree at 10.5 m, the burst piece's
+    matching covariance: the observation of the inner tree is not set aside (the boundary's
+    gate uses S alone, under which the two are 1.5 m apart in range) and matches its tree; the
+    ring's own observation is set aside. With the pose covariance in the boundary's gate the
+    inner observation was set aside and the piece matched nothing."""
+    config, params, particle, x_hat, obs, pose_cov = _ring_case([11.99, 10.5], 64.0)
+    # _ring_case spreads the bearings over +-0.6 rad; put the two 0.15 rad apart.
+    bearing = jnp.asarray([0.0, 0.15], obs.z.dtype)
+    ranges = jnp.asarray([11.99, 10.5], obs.z.dtype)
+    trees = jnp.stack([ranges * jnp.cos(bearing), ranges * jnp.sin(bearing)], -1)
+    particle = particle._replace(landmark_mean=trees)
+    obs = obs._replace(z=jnp.stack([ranges, bearing], -1))
+    found = jax.jit(lambda p: associate(config, params, p, x_hat, obs,
+                                        _matching_cov(config, params, pose_cov)))(particle)
+    np.testing.assert_array_equal(np.asarray(found.visibility.set_aside_obs), [True, False])
+    np.testing.assert_array_equal(np.asarray(found.match), [-1, 1])

@@ -161,15 +161,14 @@ def test_search_widens_a_noise_that_is_too_narrow():
     """The log's noise is 4x the given one in both groups; the grid's step is 2x, so 2-8x is
     the stated interval. The sensor's stage is decisive with every key: 1x scores at least
     10 log units (a factor e^10 in likelihood) below the chosen scale. The motion's stage runs
-    first, with the sensor still 4x too narrow, and its signal is weak (P = 16): with key 0
-    in this suite's unoptimised build x2 scored 22 below x1 and the walk stopped at x1, while
-    keys 1 and 2 chose x2 and x8 (measured when the loose boundary's ring stopped widening
-    with the matching pose covariance; before, key 0 alone chose x4). So the motion is checked
-    over the three keys: widened with at least two, and never narrowed."""
+    first, with the sensor still 4x too narrow, and its scores are noisy (P = 16): with key 0
+    in this suite's unoptimised build x2 scored 22 below x1 and the walk, which stops at the
+    first fall, kept x1, while keys 1 and 2 widened it (x2, x8). So the walk's choice is
+    checked over the three keys (widened with at least two), and the motion's likelihood
+    itself on the full grid (next test)."""
     narrow, searches = _narrow_searches()
     motion = [found.motion_scale for _, found in searches]
     assert sum(scale >= 2.0 for scale in motion) >= 2, motion
-    assert min(motion) >= 1.0
     for scaled, found in searches:
         assert found.observation_scale >= 2.0
         assert np.nanmax(found.observation_objective) - found.observation_objective[0] > 10.0
@@ -177,6 +176,20 @@ def test_search_widens_a_noise_that_is_too_narrow():
         np.testing.assert_allclose(scaled.range_noise,
                                    found.observation_scale * np.asarray(narrow.range_noise),
                                    rtol=1e-6)
+
+
+def test_the_full_grid_prefers_a_wider_motion_noise_with_key_0():
+    """Key 0 with every candidate scored (no stop at the first fall): the best motion scale
+    is 2x or more and beats 1x by more than 10 log units (37 when this was written: the walk's
+    stop at x1 above is a noisy dip at x2, not the likelihood's preference)."""
+    controls, obs, poses = _log()
+    narrow = ns.scaled_noise(_true_params(), 0.25, 0.25)
+    _, found = ns.search_noise_scales(CONFIG, jax.random.PRNGKey(0), narrow, controls, obs,
+                                      poses[0], observation_scales=(1.0,),
+                                      stop_at_first_drop=False)
+    best = int(np.nanargmax(found.motion_objective))
+    assert found.motion_scales[best] >= 2.0, found.motion_objective
+    assert found.motion_objective[best] - found.motion_objective[0] > 10.0
 
 
 def test_search_keeps_the_true_noise_near_one():

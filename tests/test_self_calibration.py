@@ -81,12 +81,16 @@ def test_recovers_the_noise_groups_within_stated_intervals():
         np.testing.assert_allclose(bursts, sc.defensive_bursts(CONFIG), rtol=1e-6)
     # Given about the true noise (EM's estimate above), the likelihood search keeps the
     # sensor's (x1) and the motion's or its next grid point, as ``test_noise_scale`` states
-    # for the true noise itself (the observation proposal's linearisation can favour a
-    # slightly wider motion noise). It chose x2 here since the loose boundary's ring stopped
-    # widening with the matching pose covariance (``tests/test_matching_airlock.py``; x1
-    # before); the stated intervals describe EM's estimate, not the search's multiple.
+    # for the true noise itself: one key's scores at P = 16 vary by hundreds of log units
+    # between keys, so x1 and x2 are not told apart reliably. It chose x2 here (by 101) since
+    # the loose boundary stopped using the matching pose covariance
+    # (``tests/test_matching_airlock.py``; x1 by 146 before). The stated intervals describe
+    # EM's estimate, not the search's multiple; the returned motion noise stays within 2.4x
+    # of the truth (2.0x and 1.8x when this was written).
     assert info.noise_scales.motion_scale in (1.0, 2.0)
     assert info.noise_scales.observation_scale == 1.0
+    returned = typical_stds(params, odometry, z_range)
+    assert np.all(returned[:2] <= 2.4 * truth[:2]), returned[:2] / truth[:2]
 
 
 def test_heading_std_for_matching_is_the_fitted_models_typical_heading_std():
