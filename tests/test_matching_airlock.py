@@ -50,16 +50,19 @@ def _reference_matchable(ranges, params):
     return (ranges >= float(params.min_range)) & (ranges <= float(params.max_range) - width)
 
 
-def _ring_case(ranges, factor, dtype=jnp.float64):
+def _ring_case(ranges, factor, dtype=jnp.float64, window=0):
     """One particle with a landmark at each of ``ranges`` (N,) straight ahead-ish of x_hat
     (bearings spread over +-0.6 rad), each observed exactly; the matching covariance is the
-    motion prior's times ``factor`` (plus the heading std)."""
+    motion prior's times ``factor`` (plus the heading std). With ``window`` > 0 the map has
+    one empty slot more and the association is windowed to the ``window`` nearest landmarks
+    (``FilterConfig.association_window``)."""
     params = _params(dtype)
     ranges = np.asarray(ranges, np.float64)
     bearing = np.linspace(-0.6, 0.6, len(ranges))
     x_hat = np.array([0.0, 0.0, 0.0])
     trees = np.stack([ranges * np.cos(bearing), ranges * np.sin(bearing)], -1)
-    config = FilterConfig(num_particles=1, max_landmarks=len(ranges), max_obs=len(ranges))
+    config = FilterConfig(num_particles=1, max_landmarks=len(ranges) + (window > 0),
+                          max_obs=len(ranges), association_window=window)
     state = mapped_state(config, trees, variance=LANDMARK_VARIANCE)
     particle = jax.tree.map(lambda a: a[0].astype(dtype) if a.dtype.kind == "f" else a[0],
                             state.particles)
@@ -168,3 +171,25 @@ def test_a_ring_landmark_does_not_reach_inner_observations_through_the_pose_cova
                                         _matching_cov(config, params, pose_cov)))(particle)
     np.testing.assert_array_equal(np.asarray(found.visibility.set_aside_obs), [True, False])
     np.testing.assert_array_equal(np.asarray(found.match), [-1, 1])
+
+
+@pytest.mark.parametrize("factor", [1.0, 64.0])
+def test_the_windowed_association_keeps_the_same_boundary(factor):
+    """The same case through the association window (7 nearest of 8 slots, the 8th empty):
+    the boundary's flags, mapped back to the slots, and the matches equal the unwindowed
+    ones (the window only restricts which landmarks are predicted), and the matchable flags
+    are the NumPy ring test's, so the windowed path also decides the boundary with S alone."""
+    config, params, particle, x_hat, obs, pose_cov = _ring_case(RANGES, factor)
+    plain = associate(config, params, particle, x_hat, obs,
+                      _matching_cov(config, params, pose_cov))
+    config_w, _, particle_w, _, _, _ = _ring_case(RANGES, factor, window=len(RANGES))
+    windowed = jax.jit(lambda p: associate(config_w, params, p, x_hat, obs,
+                                           _matching_cov(config_w, params, pose_cov)))(
+        particle_w)
+    np.testing.assert_array_equal(np.asarray(windowed.match), np.asarray(plain.match))
+    want = _reference_matchable(np.asarray(RANGES), params)
+    np.testing.assert_array_equal(np.asarray(windowed.visibility.matchable),
+                                  np.append(want, False))
+    np.testing.assert_array_equal(np.asarray(plain.visibility.matchable), want)
+    np.testing.assert_array_equal(np.asarray(windowed.visibility.set_aside_obs),
+                                  np.asarray(plain.visibility.set_aside_obs))
