@@ -153,10 +153,6 @@ class Noise:
                          a[1][0] * t + a[1][1] * (r1 + r2) + a[1][2],
                          a[2][0] * t + a[2][1] * r2 + a[2][2]], -1)
 
-    def rot1_std(self, rot1, trans):
-        """The first component of Eq. (1) at turn ``rot1`` (any shape) and translation."""
-        return self.rot1[0] * abs(trans) + self.rot1[1] * np.abs(rot1) + self.rot1[2]
-
     def sensor_var(self, distance):
         """(var_range, var_bearing) at ``distance`` (any shape), floored stds squared."""
         sr = np.maximum(self.range_noise[0] * distance + self.range_noise[1], self.range_floor)
@@ -679,9 +675,8 @@ def load_logs(seed, wobble, odometry, runs, forests, first=None, start=0):
     of a set of ``runs`` over ``forests`` forests. Only the forests needed are simulated (forest
     f is drawn from fold_in(key, f), so they are identical to the full set's).
     Returns (noise params, controls, z, valid, landmark_id, truth, seen), all NumPy."""
-    root = str(pathlib.Path(__file__).resolve().parents[1])
-    if root not in sys.path:
-        sys.path.insert(0, root)
+    # Simulate with this checkout's code, as the other experiments do (first on sys.path).
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
     from experiments.mixture_regime import regime_params
     from experiments.proposal_study import make_logs, point_keys
 
@@ -699,13 +694,6 @@ def load_logs(seed, wobble, odometry, runs, forests, first=None, start=0):
     return (params, np.asarray(controls[sl], np.float64), np.asarray(obs.z[sl], np.float64),
             np.asarray(obs.valid[sl], bool), np.asarray(obs.landmark_id[sl]),
             np.asarray(truth[sl], np.float64), np.asarray(seen[sl]))
-
-
-def wilson(k, n, z=1.96):
-    p = k / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
 
 
 def config_from_args(args) -> Config:
@@ -785,6 +773,8 @@ def main(argv=None):
     error = np.array([r["errors"][-1] for r in results])
     landmarks = np.array([r["landmarks"] for r in results])
     seconds = np.array([r["seconds"] for r in results])
+    from experiments.proposal_study import wilson  # the study's interval (driver only)
+
     n, k = error.size, int(np.sum(error > 1.0))
     low, high = wilson(k, n)
     print(f"runs {n}; diverged (> 1 m) {k} = {100 * k / n:.1f} % [{100 * low:.1f}, "

@@ -353,9 +353,8 @@ def test_adaptive_ratio_rises_on_odometry_fault():
     slip, 23 motion sigmas, about 3 burst sigmas). A slip of 0.15 m (7 sigmas), the case until
     the loose boundary stopped using the matching pose covariance
     (``tests/test_matching_airlock.py``), is now matched by the burst piece of the default
-    proposal (kappa 8: 0.17 m std), so the
-    likelihood hardly drops and the augmented term rises by 0.05 only: explaining such slips
-    is the bursts' job. Paired with the fault-free run under the same key (identical up to
+    proposal (kappa 8: 0.17 m std), so the likelihood hardly drops and the augmented term
+    rises by 0.05 only: explaining such slips is the bursts' job. Paired with the fault-free run under the same key (identical up to
     step 29; from step 30 the fault's own control enters phi through the motion draws'
     efficiency), the augmented-MCL phi at steps 31-33 (from the likelihood averages before
     each step) is higher by at least 0.1 on average. The phi the particles used (their mean,
