@@ -79,10 +79,17 @@ twice the documented ~150 trees; motion x8) the observation scales x1, 2 and 4 a
 overflowed (223 k, 355 k and 199 k births dropped, summed over the 100 particles) and
 outscored x8, the only one that did not (log likelihood +70.8 k, +50.4 k and +46.1 k against
 +34.9 k). So a stage ranks by likelihood only the candidates whose run dropped no birth
-(``best_scale``). When none did, no score in that stage is a fair one and the stage keeps 1:
-EM's own estimate stands (the run's warnings then say the map was full). That last rule was
-settled after seeing, on Victoria Park, the GPS error of the motion scale it keeps (x1)
-against the one the biased likelihood ranked first (x8): in-sample there (docs/results.md).
+(``best_scale``). When none did, no score in that stage is a fair one, and the stage takes
+the candidate whose map filled last (the latest first step with a dropped birth; ties go to
+the scale nearest 1, EM's own, then to the grid's order): the broader a noise, the
+fewer trees it splits, so the map that lasts longest is the one that split the fewest. Its
+run's warnings then say the map was full. Before 2026-12-05 such a stage kept 1 (EM's own
+estimate), a rule settled after seeing on Victoria Park the GPS error of the motion scale it
+kept (x1) against the one the biased likelihood ranked first (x8), in-sample there. That
+rule failed on the same log once every observation candidate overflowed: x1, whose map
+filled first, was kept, and the run ended 101.5 m off (its x8 candidate dropped 6 births,
+at the step where its map filled). The current rule uses no ground truth; it was written
+after seeing that GPS error, so its Victoria Park numbers are in-sample (docs/results.md).
 Since an overflowed run cannot be chosen, a candidate's run stops after its first step that
 drops a birth (``run_score``; ``filter.scan_filter``'s ``stop_at_dropped_birth``): the rest of
 it could not change the choice, so only the time changes (on Victoria Park the candidates
@@ -118,11 +125,13 @@ class ScaleSearch(NamedTuple):
     marginal likelihoods. observation_scales / observation_objective: the same for the second
     stage (at the chosen s_m). motion_dropped / observation_dropped: (S_m,) / (S_o,) the
     births each candidate's run dropped for want of a free slot (summed over particles and
-    steps; ``best_scale``). A candidate the walk did not use (``walk_stage``: not run, or run
-    ahead of its stop) has objective NaN and dropped -1; one stopped at its first dropped
-    birth (``run_score``) has objective NaN and the births dropped at that step (> 0). The x1
-    candidate given as ``known_objective`` / ``known_dropped`` (EM's own run) is a whole run:
-    its score and count are that run's, even when it overflowed.
+    steps; ``best_scale``). motion_fill_step / observation_fill_step: (S_m,) / (S_o,) the
+    first step (0-based) whose map dropped a birth, T (the log's steps) for a run that never
+    did (``RunScore.fill_step``). A candidate the walk did not use (``walk_stage``: not run,
+    or run ahead of its stop) has objective NaN, dropped -1 and fill step -1; one stopped at
+    its first dropped birth (``run_score``) has objective NaN and the births dropped at that
+    step (> 0). The x1 candidate given as ``known`` (EM's own run) is a whole run: its score
+    and count are that run's, even when it overflowed.
     """
 
     motion_scale: float
@@ -133,6 +142,8 @@ class ScaleSearch(NamedTuple):
     observation_objective: np.ndarray
     motion_dropped: np.ndarray
     observation_dropped: np.ndarray
+    motion_fill_step: np.ndarray
+    observation_fill_step: np.ndarray
 
 
 def scaled_noise(params: Params, motion_scale, observation_scale) -> Params:
@@ -169,11 +180,27 @@ class RunScore(NamedTuple):
     (``Trace.log_evidence`` summed); dropped_births, the births it dropped because the map
     was full (``Trace.num_dropped_births`` summed over steps; each is summed over particles).
     A run stopped at its first dropped birth (``run_score``) has log_likelihood NaN (its
-    partial sum would compare with nothing) and the births dropped at that step.
+    partial sum would compare with nothing) and the births dropped at that step. fill_step,
+    the first step (0-based) that dropped a birth, or the log's length T when none did: how
+    long the map lasted (``best_scale`` ranks overflowed runs by it).
     """
 
     log_likelihood: float
     dropped_births: int
+    fill_step: int
+
+
+def score_trace(trace, stopped_at_dropped_birth: bool) -> RunScore:
+    """``RunScore`` of a filter run's ``Trace`` (T steps): the summed ``log_evidence``
+    (NaN when the run was stopped at a dropped birth and did drop one), the summed
+    ``num_dropped_births`` and the first step with a dropped birth (T when none)."""
+    per_step = np.asarray(trace.num_dropped_births)
+    dropped = int(np.sum(per_step))
+    log_likelihood = float(np.sum(np.asarray(trace.log_evidence)))  # as calibrate_params sums
+    if stopped_at_dropped_birth and dropped > 0:
+        log_likelihood = float("nan")
+    full = np.flatnonzero(per_step > 0)
+    return RunScore(log_likelihood, dropped, int(full[0]) if full.size else per_step.shape[0])
 
 
 def run_score(config: FilterConfig, key, params: Params, controls,
@@ -197,25 +224,43 @@ def run_score(config: FilterConfig, key, params: Params, controls,
     """
     _, trace = run_filter(config, key, params, controls, observations, initial_pose,
                           record_lineage=True, stop_at_dropped_birth=stop_at_dropped_birth)
-    dropped = int(np.sum(np.asarray(trace.num_dropped_births)))
-    log_likelihood = float(np.sum(np.asarray(trace.log_evidence)))  # as calibrate_params sums
-    if stop_at_dropped_birth and dropped > 0:
-        log_likelihood = float("nan")
-    return RunScore(log_likelihood, dropped)
+    return score_trace(trace, stop_at_dropped_birth)
 
 
-def best_scale(scales, objective, dropped=None) -> float:
+def best_scale(scales, objective, dropped=None, fill_step=None) -> float:
     """The scale (S,) of highest finite ``objective`` (S,), the first of ties; 1 (EM's own
     estimate) when no objective is finite (NaN or +-inf everywhere). With ``dropped`` (S,),
-    the births each candidate's run dropped, only candidates that dropped none compete, and
-    1 is kept when none of them has a finite score (module docstring: an overflowed run's
-    score counts unmapped trees again and again)."""
+    the births each candidate's run dropped (-1: not run), only candidates that dropped none
+    compete (module docstring: an overflowed run's score counts unmapped trees again and
+    again). When none of them has a finite score: with ``fill_step`` (S,), each run's first
+    step that dropped a birth (``RunScore.fill_step``), the overflowed run whose map filled
+    last, ties to the scale nearest 1 (in log), then to the first (``latest_fill``);
+    without it, or when no run overflowed, 1."""
+    scales = np.asarray(scales)
     objective = np.where(np.isfinite(objective), objective, -np.inf)
     if dropped is not None:
         objective = np.where(np.asarray(dropped) == 0, objective, -np.inf)
-    if not np.any(np.isfinite(objective)):
+    if np.any(np.isfinite(objective)):
+        return float(scales[int(np.argmax(objective))])
+    if dropped is None or fill_step is None or not np.any(np.asarray(dropped) > 0):
         return 1.0
-    return float(np.asarray(scales)[int(np.argmax(objective))])
+    return float(scales[latest_fill(dropped, fill_step, np.abs(np.log(scales)))])
+
+
+def latest_fill(dropped, fill_step, tie_key=None) -> int:
+    """Index of the overflowed run (``dropped`` (S,) > 0) whose map filled last (largest
+    ``fill_step`` (S,)); ties go to the smallest ``tie_key`` (S,) (``best_scale``: |log s|,
+    the scale nearest EM's own), then to the first; -1 when no run overflowed. The broader a
+    noise, the fewer trees it splits and the later its map fills (module docstring). The
+    births dropped do not break ties: a stopped run counts those of its fill step, a whole
+    run (EM's) those of every step."""
+    dropped, fill_step = np.asarray(dropped), np.asarray(fill_step)
+    tie_key = np.zeros(dropped.shape) if tie_key is None else np.asarray(tie_key)
+    overflowed = np.flatnonzero(dropped > 0)
+    if overflowed.size == 0:
+        return -1
+    # lexsort: the last key is the primary one; the stable sort keeps the given order.
+    return int(overflowed[np.lexsort((tie_key[overflowed], -fill_step[overflowed]))[0]])
 
 
 def default_workers() -> int:
@@ -244,11 +289,11 @@ def check_workers(workers, name: str = "workers") -> int:
 
 def walk_stage(scales, score, stop_at_first_drop: bool = True, workers: int = 1,
                known=None):
-    """One stage's (objective (S,), dropped (S,)) over ``scales`` (S,) (contains 1), with
-    ``score(scale) -> RunScore``: candidates run outward from 1, the larger scales upward and
-    then the smaller downward. With ``stop_at_first_drop`` a direction stops after a fair run
-    (dropped no birth, finite score) that scores below the best fair run met on that walk
-    (1 included); candidates not run get NaN and -1 (module docstring).
+    """One stage's (objective (S,), dropped (S,), fill_step (S,)) over ``scales`` (S,)
+    (contains 1), with ``score(scale) -> RunScore``: candidates run outward from 1, the larger
+    scales upward and then the smaller downward. With ``stop_at_first_drop`` a direction stops
+    after a fair run (dropped no birth, finite score) that scores below the best fair run met
+    on that walk (1 included); candidates not run get NaN, -1 and -1 (module docstring).
 
     ``workers``: when a candidate is needed and not started, it and the next unscored ones
     of its direction start, each in its own thread (``score`` must be thread-safe), as many
@@ -257,7 +302,7 @@ def walk_stage(scales, score, stop_at_first_drop: bool = True, workers: int = 1,
     candidate it waits for cannot stop it, so the one after is certainly needed and starts at
     once if a thread is free (on Victoria Park, whose x1 run overflowed, a run that ends at
     its first dropped birth frees its thread early). A candidate scored ahead of a stop is
-    not used and reads NaN and -1 as if not run, and an error it raised is not raised; at
+    not used and reads NaN, -1 and -1 as if not run, and an error it raised is not raised; at
     most ``workers`` - 1 are scored past a stop in each direction, and the stage returns
     after every started run has finished. So the result is the same for every ``workers``;
     only the time (and the memory: up to ``workers`` runs alive at once) differs. The
@@ -314,10 +359,10 @@ def walk_stage(scales, score, stop_at_first_drop: bool = True, workers: int = 1,
             pool.shutdown(wait=True)  # runs scored ahead of a stop finish before returning
     objective = np.full(scales.shape, np.nan)
     dropped = np.full(scales.shape, -1, np.int64)
+    fill_step = np.full(scales.shape, -1, np.int64)
     for index in used:
-        objective[index], dropped[index] = (results[index].log_likelihood,
-                                            results[index].dropped_births)
-    return objective, dropped
+        objective[index], dropped[index], fill_step[index] = results[index]
+    return objective, dropped, fill_step
 
 
 def describe_search(found: ScaleSearch) -> str:
@@ -343,7 +388,9 @@ def describe_search(found: ScaleSearch) -> str:
                  + ("; a stopped run counts the births of the step it stopped at"
                     if stopped else "")
                  + "; only runs that dropped none compete, and a stage where every run "
-                 "dropped births keeps x1)")
+                 "dropped births takes the one whose map filled last: first full at step "
+                 f"motion {found.motion_fill_step.tolist()}, observation "
+                 f"{found.observation_fill_step.tolist()})")
     return line
 
 
@@ -362,8 +409,7 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
                         observations: Observations, initial_pose=None, *,
                         motion_scales=DEFAULT_SCALES,
                         observation_scales=DEFAULT_SCALES,
-                        known_objective: float | None = None,
-                        known_dropped: int | None = None,
+                        known: RunScore | None = None,
                         stop_at_first_drop: bool = True,
                         workers: int | None = None) -> tuple[Params, ScaleSearch]:
     """Multiply ``params``' motion and observation noise by the scales of highest filter log
@@ -375,27 +421,27 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
       params: the settings to scale (EM's result).
       motion_scales / observation_scales: the candidate multipliers of each stage (each must
         contain 1; ``(1.0,)`` leaves that group as it is).
-      known_objective, known_dropped: ``run_score`` of ``params`` itself with ``key`` when the
-        caller has it (EM's run of the settings it returns), so that candidate is not run
-        again; both or neither.
+      known: the ``RunScore`` of ``params`` itself with ``key`` when the caller has it (EM's
+        whole run of the settings it returns, ``score_trace``), so that candidate is not run
+        again.
       stop_at_first_drop: walk each grid outward from 1 and stop a direction once a fair
         candidate scores below the best met on it (module docstring); False runs every
         candidate.
       workers: candidates scored at once, each in its own thread (``walk_stage``; the same
         result for every value); None: ``default_workers()``.
     Returns:
-      (scaled ``Params``, ``ScaleSearch``; a candidate not run has objective NaN and
-      dropped -1). A stage whose candidates all score a non-finite value keeps 1, and so does
-      a stage whose candidates all dropped births (``best_scale``).
+      (scaled ``Params``, ``ScaleSearch``; a candidate not run has objective NaN, dropped -1
+      and fill step -1). A stage whose candidates all score a non-finite value keeps 1; one
+      whose candidates all dropped births takes the run whose map filled last
+      (``best_scale``).
     """
     motion_scales = check_scales("motion_scales", motion_scales)
     observation_scales = check_scales("observation_scales", observation_scales)
     workers = check_workers(workers)
-    if (known_objective is None) != (known_dropped is None):
-        raise ValueError("known_objective and known_dropped go together (one run_score); got "
-                         f"{known_objective} and {known_dropped}")
-    scored = {} if known_objective is None else {
-        (1.0, 1.0): RunScore(float(known_objective), int(known_dropped))}
+    if known is not None and not isinstance(known, RunScore):
+        raise ValueError(f"known must be a RunScore (score_trace of EM's run) or None; got "
+                         f"{known!r}")
+    scored = {} if known is None else {(1.0, 1.0): known}
 
     def score(motion: float, observation: float) -> RunScore:  # one dict entry a thread
         scored[motion, observation] = run_score(
@@ -403,17 +449,19 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
             initial_pose)
         return scored[motion, observation]
 
-    def known(motion: float) -> dict:  # the stage's x1, when it has run
+    def known_of(motion: float) -> dict:  # the stage's x1, when it has run
         return {1.0: scored[motion, 1.0]} if (motion, 1.0) in scored else {}
 
-    motion_objective, motion_dropped = walk_stage(
-        motion_scales, lambda m: score(m, 1.0), stop_at_first_drop, workers, known(1.0))
-    motion_scale = best_scale(motion_scales, motion_objective, motion_dropped)
-    observation_objective, observation_dropped = walk_stage(
+    motion_objective, motion_dropped, motion_fill = walk_stage(
+        motion_scales, lambda m: score(m, 1.0), stop_at_first_drop, workers,
+        known_of(1.0))
+    motion_scale = best_scale(motion_scales, motion_objective, motion_dropped, motion_fill)
+    observation_objective, observation_dropped, observation_fill = walk_stage(
         observation_scales, lambda o: score(motion_scale, o), stop_at_first_drop, workers,
-        known(motion_scale))
+        known_of(motion_scale))
     observation_scale = best_scale(observation_scales, observation_objective,
-                                   observation_dropped)
+                                   observation_dropped, observation_fill)
     return scaled_noise(params, motion_scale, observation_scale), ScaleSearch(
         motion_scale, observation_scale, motion_scales, motion_objective, observation_scales,
-        observation_objective, motion_dropped, observation_dropped)
+        observation_objective, motion_dropped, observation_dropped, motion_fill,
+        observation_fill)

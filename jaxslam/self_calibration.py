@@ -98,7 +98,7 @@ from jaxslam.landmark_merge import merge_split_landmarks, relabel
 from jaxslam.motion import control_to_odometry
 from jaxslam.noise_scale import (DEFAULT_SCALES, MOTION_FIELDS, OBSERVATION_FIELDS, ScaleSearch,
                                  check_scales, check_workers, describe_search,
-                                 search_noise_scales)
+                                 latest_fill, score_trace, search_noise_scales)
 from jaxslam.noise_fit import (MIN_MOVES, MIN_OBSERVATIONS, MIN_SIGHTINGS, STD_FLOOR,
                                group_relative_errors, motion_noise_update,
                                observation_noise_update)
@@ -146,7 +146,8 @@ class CalibrationInfo(NamedTuple):
       dropped_births: (iterations,) int64 births each iteration's filter run dropped because
         its map was full (summed over particles and steps). When EM does not converge, the
         settings returned are those of the best run after the first (``_best_run``), chosen
-        among the runs that dropped none when any did (and scored a finite value).
+        among the runs that dropped none when any did (and scored a finite value), else the
+        run whose map filled last.
       bursts_fitted: whether the motion fit behind the returned settings found bursts
         (``motion_outlier_probability`` and ``motion_outlier_scale`` fitted); False when it
         kept the defensive ones (``defensive_bursts``), None when no motion fit lies behind
@@ -403,7 +404,7 @@ def _stated_errors(m_steps: list, source, steps: int) -> tuple[dict, dict, bool 
     return relative_std, samples, bursts_fitted
 
 
-def _best_run(objective, dropped) -> int:
+def _best_run(objective, dropped, fill_step=None) -> int:
     """Index of the filter run with the highest log marginal likelihood.
 
     EM raises the marginal likelihood while the E-step's association holds; when it did not
@@ -411,27 +412,33 @@ def _best_run(objective, dropped) -> int:
     the starting settings, whose sensor fields (range, field of view, detection) are guesses
     no M-step has seen: it is never the one returned. Runs that dropped births (the map was
     full) compete only when every other run did too (or scored no finite value): their score
-    counts unmapped trees again at each sighting (``noise_scale``), but some run's settings
-    must be returned. objective (R,), dropped (R,) births each run dropped.
+    counts unmapped trees again at each sighting (``noise_scale``), so among them the one
+    whose map filled last is returned (``noise_scale.latest_fill``, the search's rule), or,
+    without ``fill_step``, the most likely. objective (R,), dropped (R,) births each run
+    dropped, fill_step (R,) each run's first step that dropped one (T when none).
     """
     scores = np.asarray(objective, np.float64)
     scores[0] = -np.inf if len(scores) > 1 else scores[0]
     full = np.asarray(dropped) > 0
     if np.any(np.isfinite(scores) & ~full):
         scores = np.where(full, -np.inf, scores)
+    elif fill_step is not None and np.any(full[1:] if len(scores) > 1 else full):
+        first = 1 if len(scores) > 1 else 0  # the first run is never returned (above)
+        return first + latest_fill(np.asarray(dropped)[first:], np.asarray(fill_step)[first:])
     if not np.any(np.isfinite(scores)):
         return len(scores) - 1
     return int(np.argmax(np.where(np.isfinite(scores), scores, -np.inf)))
 
 
-def _stalled(objective, dropped, patience: int | None) -> bool:
+def _stalled(objective, dropped, patience: int | None, fill_step=None) -> bool:
     """Whether none of the last ``patience`` filter runs is the best so far by ``_best_run``'s
     rule (the first run never counts as best; a run whose map overflowed counts only when
     every run's did, so such a run does not beat a lower fair one; a tie keeps the earlier
-    run). objective (R,), dropped (R,). None: never. Can first hold after patience + 2 runs."""
+    run). objective (R,), dropped (R,), fill_step (R,) or None. None patience: never. Can
+    first hold after patience + 2 runs."""
     if patience is None:
         return False
-    return len(objective) - 1 - _best_run(objective, dropped) >= patience
+    return len(objective) - 1 - _best_run(objective, dropped, fill_step) >= patience
 
 
 def _fit_warnings(last: _MStep | None, steps: int) -> list[str]:
@@ -450,22 +457,31 @@ def _progress_line(iteration: int, objective: float, typical, change: float,
                    dropped: int = 0) -> str:
     full = (f", map full: {dropped} births dropped (if EM does not converge, the run whose "
             f"settings are returned is chosen among the later runs that dropped none, when "
-            f"there are any)" if dropped else "")
+            f"there are any, else it is the one whose map filled last)" if dropped else "")
     return (f"calibration iteration {iteration}: log marginal likelihood {objective:.1f}{full}, "
             f"typical stds heading {typical[0]:.4g} rad, translation {typical[1]:.4g} m, "
             f"range {typical[2]:.4g} m, bearing {typical[3]:.4g} rad (largest change "
             f"{change:.1%})")
 
 
-def _stalled_line(iteration: int, objective, dropped, patience: int) -> str:
-    best = _best_run(objective, dropped)
+def _every_later_map_overflowed(dropped) -> bool:
+    """Whether every filter run after the first dropped births (dropped (R,), R >= 2)."""
+    return len(dropped) > 1 and all(count > 0 for count in dropped[1:])
+
+
+def _stalled_line(iteration: int, objective, dropped, patience: int, fill_step) -> str:
+    best = _best_run(objective, dropped, fill_step)
+    if _every_later_map_overflowed(dropped):  # ``_best_run`` ranks by the fill step
+        beaten = f"map, which lasted until step {fill_step[best]}"
+    else:
+        beaten = f"{objective[best]:.1f}"
     return (f"calibration iteration {iteration}: log marginal likelihood {objective[-1]:.1f}; "
             f"none of the last {patience} runs beat iteration {best + 1}'s "
-            f"{objective[best]:.1f}: EM stops (not converged)")
+            f"{beaten}: EM stops (not converged)")
 
 
 def _scale_search(config, key, params, controls, observations, start, scales, last: _MStep,
-                  progress, known_objective=None, known_dropped=None, workers=None):
+                  progress, known=None, workers=None):
     """``search_noise_scales`` over the groups EM fitted (an unfitted group's grid is (1,)):
     (params, ``ScaleSearch``, a clause for the verdict). start: (3,) EM's runs' start pose
     (their dtype), so the search's runs are EM's compiled program."""
@@ -474,7 +490,7 @@ def _scale_search(config, key, params, controls, observations, start, scales, la
         config, key, params, controls, observations, start,
         motion_scales=scales if last.motion_fitted else unit,
         observation_scales=scales if last.observation_fitted else unit,
-        known_objective=known_objective, known_dropped=known_dropped, workers=workers)
+        known=known, workers=workers)
     if progress is not None:
         progress(f"calibration: likelihood over noise scales: {describe_search(found)}")
     if found.motion_scale == 1.0 and found.observation_scale == 1.0:
@@ -578,6 +594,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                                        {}, False, "not calibrated: too few observations",
                                        (warning,), None, np.zeros(0, np.int64))
     objective, dropped, costs, typical, evaluated, warnings = [], [], [], [], [], []
+    runs = []  # each EM filter run's RunScore
     values = {}
     converged, stalled, last, m_steps = False, False, None, []
     controls = jnp.asarray(log.controls, dtype)
@@ -593,13 +610,15 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         typical.append(typical_stds(params, odometry, z_range))
         final, trace = run_filter(config, key, params, controls, observations, start,
                                   record_lineage=True)
-        objective.append(float(np.sum(np.asarray(trace.log_evidence))))
-        dropped.append(int(np.sum(np.asarray(trace.num_dropped_births))))
+        runs.append(score_trace(trace, stopped_at_dropped_birth=False))
+        objective.append(runs[-1].log_likelihood)
+        dropped.append(runs[-1].dropped_births)
         evaluated.append(params)
-        if _stalled(objective, dropped, patience):
+        fill_steps = [run.fill_step for run in runs]
+        if _stalled(objective, dropped, patience, fill_steps):
             stalled = True
             if progress is not None:
-                progress(_stalled_line(done, objective, dropped, patience))
+                progress(_stalled_line(done, objective, dropped, patience, fill_steps))
             break
         step = _m_step(config, params, log, odometry,
                        _best_history(trace.lineage, final.log_weight), done, calibrate_sensor,
@@ -623,22 +642,25 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         if change < tol:
             converged = True
             break
-    chosen, known, source = "", (None, None), last  # source: the M-step behind ``params``
+    chosen, known, source = "", None, last  # source: the M-step behind ``params``
     if not converged:
-        best = _best_run(objective, dropped)
+        best = _best_run(objective, dropped, [run.fill_step for run in runs])
         source = m_steps[best - 1] if 1 <= best <= len(m_steps) else None
-        params, known = evaluated[best], (objective[best], dropped[best])
+        params, known = evaluated[best], runs[best]
         values = {name: _plain(getattr(params, name)) for name in values}
         kept = int(np.sum(np.asarray(dropped[1:]) == 0))
         among = (f", among the {kept} whose map never overflowed"
                  if 0 < kept < len(evaluated) - 1 else "")
-        chosen = (f"; returned iteration {best + 1}'s settings (the highest log marginal "
-                  f"likelihood of the {len(evaluated)} filter runs{among})")
+        why = (f"every later map overflowed; its map filled last, at step "
+               f"{runs[best].fill_step}" if _every_later_map_overflowed(dropped) else
+               f"the highest log marginal likelihood of the {len(evaluated)} filter "
+               f"runs{among}")
+        chosen = f"; returned iteration {best + 1}'s settings ({why})"
     found = None
     if scale_search and source is not None and (source.motion_fitted
                                                  or source.observation_fitted):
         params, found, note = _scale_search(config, key, params, controls, observations,
-                                            start, scales, source, progress, *known,
+                                            start, scales, source, progress, known,
                                             workers=search_workers)
         values.update({name: _plain(getattr(params, name)) for name in
                        (MOTION_FIELDS if source.motion_fitted else ())
@@ -657,7 +679,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         verdict = "converged"
     elif stalled:
         verdict = (f"not converged: stopped after {done} iterations (none of the last "
-                   f"{patience} runs beat the best log marginal likelihood before them)")
+                   f"{patience} runs beat the best run before them: the highest log "
+                   "marginal likelihood, or the latest-filling map when every map overflowed)")
     else:
         verdict = (f"not converged after {done} iterations (the last moved a noise std by "
                    f"more than {tol:.0%})")

@@ -139,13 +139,14 @@ def test_search_scores_are_single_filter_runs_and_each_candidate_runs_once(monke
     calls.clear()
     _, again = ns.search_noise_scales(CONFIG, key, params, controls, obs, poses[0],
                                       motion_scales=(1.0, 2.0), observation_scales=(1.0, 4.0),
-                                      known_objective=found.motion_objective[0],
-                                      known_dropped=found.motion_dropped[0])
+                                      known=ns.RunScore(found.motion_objective[0],
+                                                        found.motion_dropped[0],
+                                                        found.motion_fill_step[0]))
     assert len(calls) == 2  # the known x1 is not run again
     chex.assert_trees_all_equal(again, found)
-    with pytest.raises(ValueError, match="known_objective and known_dropped go together"):
+    with pytest.raises(ValueError, match="known must be a RunScore"):
         ns.search_noise_scales(CONFIG, key, params, controls, obs, poses[0],
-                               known_objective=found.motion_objective[0])
+                               known=(found.motion_objective[0], 0))
 
 
 @functools.lru_cache(maxsize=1)
@@ -213,45 +214,96 @@ def test_best_scale(objective, expected):
 
 @pytest.mark.parametrize("objective, dropped, expected", [
     ([9.0, 1.0, 8.0, 2.0], [5, 0, 3, 0], 8.0),  # the most likely of the runs that dropped none
-    ([1.0, 9.0, 8.0, 2.0], [5, 1, 3, 2], 1.0),  # every run dropped births: keep EM's x1
+    ([1.0, 9.0, 8.0, 2.0], [5, 1, 3, 2], 1.0),  # all overflowed, no fill steps given: x1
     ([1.0, 9.0, 8.0, 2.0], [0, 0, 0, 0], 2.0),  # none dropped: likelihood alone
     ([2.0, np.nan, 8.0, 9.0], [5, 0, 3, 3], 1.0),  # the only full-free run is not finite
 ])
 def test_best_scale_prefers_runs_whose_map_never_overflowed(objective, dropped, expected):
     assert ns.best_scale(np.array([1.0, 2.0, 4.0, 8.0]), np.array(objective),
                          np.array(dropped)) == expected
+    # The fill steps only decide among overflowed runs when no run is fair (next test):
+    # with a fair run, or without any overflowed run, they change nothing.
+    fair = np.array(dropped) == 0
+    if np.any(fair & np.isfinite(objective)) or not np.any(np.array(dropped) > 0):
+        assert ns.best_scale(np.array([1.0, 2.0, 4.0, 8.0]), np.array(objective),
+                             np.array(dropped), np.array([7, 90, 3, 50])) == expected
+
+
+@pytest.mark.parametrize("objective, dropped, fill_step, expected", [
+    # Every run overflowed: the map that filled last wins, whatever the likelihood says.
+    ([1.0, 9.0, 8.0, 2.0], [5, 1, 3, 2], [10, 40, 70, 55], 4.0),
+    # Ties on the fill step go to the scale nearest 1, whatever the births dropped (a whole
+    # run's total against a stopped run's one step), then to the first.
+    ([np.nan] * 4, [900, 4, 6, 1], [70, 70, 70, 70], 1.0),
+    ([np.nan] * 4, [5, 6, 6, 1], [10, 70, 70, 70], 2.0),
+    # Runs not run (-1) never win; a fair run with a non-finite score is not an overflowed
+    # one, so the fill steps decide among the overflowed x1 and x8.
+    ([np.nan, np.nan, np.nan, np.nan], [3, -1, 0, 2], [20, -1, 100, 30], 8.0),
+    # Nothing overflowed and nothing finite: keep EM's x1.
+    ([np.nan, np.inf, np.nan, np.nan], [0, 0, -1, 0], [100, 100, -1, 100], 1.0),
+])
+def test_best_scale_takes_the_map_that_filled_last_when_every_run_overflowed(
+        objective, dropped, fill_step, expected):
+    assert ns.best_scale(np.array([1.0, 2.0, 4.0, 8.0]), np.array(objective),
+                         np.array(dropped), np.array(fill_step)) == expected
+
+
+def test_fill_ties_go_to_the_scale_nearest_one_then_to_the_first():
+    grid = np.array([0.25, 0.5, 1.0, 2.0, 4.0])
+    dropped = np.array([3, 3, 0, 3, 3])  # x1 fair but not finite: it cannot be taken
+    objective = np.array([np.nan, np.nan, np.inf, np.nan, np.nan])
+    assert ns.best_scale(grid, objective, dropped, np.array([40, 60, 100, 60, 50])) == 0.5
+    assert ns.best_scale(grid, objective, dropped, np.array([60, 40, 100, 60, 50])) == 2.0
+    assert ns.latest_fill([2, 2, 2], [5, 9, 9]) == 1  # no tie key: the first of the tie
+    assert ns.latest_fill([0, 0], [7, 7]) == -1  # nothing overflowed
 
 
 def test_search_ranks_runs_that_dropped_births_last(monkeypatch):
     """Scores stubbed (the rule, not the filter): narrow observation noise scores higher but
     overflows the map below x4. Every motion candidate runs at x1 and overflows: the stage
-    keeps x1 though x8 scores highest; the observation stage takes x4, and the search records
-    what each run dropped."""
+    takes x2, whose map filled last, though x8 scores highest; the observation stage takes
+    x4, and the search records what each run dropped and when its map filled."""
     controls, obs, poses = _log()
     params = _true_params()
 
     def stub(config, key, candidate, *args):  # likelihood alone would take motion x8
         scale = float(candidate.range_std_floor / params.range_std_floor)
         motion = float(candidate.rot1_noise[2] / params.rot1_noise[2])
-        return ns.RunScore(100.0 + motion - scale, 1000 if scale < 4.0 else 0)
+        overflowed = scale < 4.0
+        fill = {1.0: 30, 2.0: 60, 4.0: 50, 8.0: 40}[motion] if overflowed else len(controls)
+        return ns.RunScore(100.0 + motion - scale, 1000 if overflowed else 0, fill)
 
     monkeypatch.setattr(ns, "run_score", stub)
     _, found = ns.search_noise_scales(CONFIG, jax.random.PRNGKey(0), params, controls, obs,
                                       poses[0])
-    assert found.motion_scale == 1.0  # every motion candidate (at s_o = 1) overflowed
+    assert found.motion_scale == 2.0  # every motion candidate (at s_o = 1) overflowed
     np.testing.assert_array_equal(found.motion_dropped, [1000, 1000, 1000, 1000])
+    np.testing.assert_array_equal(found.motion_fill_step, [30, 60, 50, 40])
     assert found.observation_scale == 4.0
     np.testing.assert_array_equal(found.observation_dropped, [1000, 1000, 0, 0])
+    np.testing.assert_array_equal(found.observation_fill_step,
+                                  [60, 60, len(controls), len(controls)])
+
+
+STUB_STEPS = 100  # the stubbed runs' log length
+
+
+def _run(log_likelihood, dropped, fill_step=None) -> ns.RunScore:
+    """A stubbed ``RunScore``; the fill step defaults to the whole stub log (STUB_STEPS) for
+    a run that dropped nothing and to its middle for one that did."""
+    if fill_step is None:
+        fill_step = STUB_STEPS if dropped == 0 else STUB_STEPS // 2
+    return ns.RunScore(log_likelihood, dropped, fill_step)
 
 
 def _stub_scores(table):
-    """score(scale) -> RunScore from {scale: (log likelihood, dropped births)}, recording
-    the order of the calls."""
+    """score(scale) -> RunScore from {scale: (log likelihood, dropped births[, fill
+    step])}, recording the order of the calls."""
     calls = []
 
     def score(scale):
         calls.append(scale)
-        return ns.RunScore(*table[scale])
+        return _run(*table[scale])
 
     return score, calls
 
@@ -262,15 +314,16 @@ GRID = np.array([1.0, 2.0, 4.0, 8.0, 16.0])
 def test_walk_stops_a_direction_once_the_score_falls_past_its_peak():
     score, calls = _stub_scores({1.0: (5.0, 0), 2.0: (9.0, 0), 4.0: (7.0, 0), 8.0: (8.0, 0),
                                  16.0: (1.0, 0)})
-    objective, dropped = ns.walk_stage(GRID, score)
+    objective, dropped, fill_step = ns.walk_stage(GRID, score)
     assert calls == [1.0, 2.0, 4.0]  # 4 scores below 2's peak: 8 and 16 are not run
     np.testing.assert_array_equal(objective, [5.0, 9.0, 7.0, np.nan, np.nan])
     np.testing.assert_array_equal(dropped, [0, 0, 0, -1, -1])
+    np.testing.assert_array_equal(fill_step, [STUB_STEPS] * 3 + [-1, -1])
     assert ns.best_scale(GRID, objective, dropped) == 2.0
     # Without the stop every candidate runs (and the later, higher bump at 8 stays below 2).
     score, calls = _stub_scores({1.0: (5.0, 0), 2.0: (9.0, 0), 4.0: (7.0, 0), 8.0: (8.0, 0),
                                  16.0: (1.0, 0)})
-    objective, dropped = ns.walk_stage(GRID, score, stop_at_first_drop=False)
+    objective, dropped, _ = ns.walk_stage(GRID, score, stop_at_first_drop=False)
     assert calls == [1.0, 2.0, 4.0, 8.0, 16.0] and not np.isnan(objective).any()
 
 
@@ -279,19 +332,21 @@ def test_walk_does_not_stop_on_runs_that_are_not_fair():
     be chosen); the first fair run sets the best, the next lower fair one stops it."""
     score, calls = _stub_scores({1.0: (50.0, 7), 2.0: (np.nan, 0), 4.0: (40.0, 3),
                                  8.0: (6.0, 0), 16.0: (5.0, 0)})
-    objective, dropped = ns.walk_stage(GRID, score)
+    objective, dropped, fill_step = ns.walk_stage(GRID, score)
     assert calls == [1.0, 2.0, 4.0, 8.0, 16.0]
-    assert ns.best_scale(GRID, objective, dropped) == 8.0
-    score, calls = _stub_scores({scale: (10.0 - scale, 1) for scale in GRID})
-    ns.walk_stage(GRID, score)
-    assert calls == GRID.tolist()  # every run overflowed: all run, the stage keeps 1
+    assert ns.best_scale(GRID, objective, dropped, fill_step) == 8.0
+    score, calls = _stub_scores({scale: (10.0 - scale, 1, int(scale) % 5) for scale in GRID})
+    objective, dropped, fill_step = ns.walk_stage(GRID, score)
+    assert calls == GRID.tolist()  # every run overflowed: all run, the latest fill wins
+    np.testing.assert_array_equal(fill_step, [1, 2, 4, 3, 1])
+    assert ns.best_scale(GRID, objective, dropped, fill_step) == 4.0
 
 
 def test_walk_goes_up_from_one_then_down():
     grid = np.array([2.0, 0.25, 1.0, 0.5, 4.0])  # any order; each direction walks outward
     score, calls = _stub_scores({0.25: (0.0, 0), 0.5: (3.0, 0), 1.0: (4.0, 0), 2.0: (1.0, 0),
                                  4.0: (9.0, 0)})
-    objective, dropped = ns.walk_stage(grid, score)
+    objective, dropped, _ = ns.walk_stage(grid, score)
     # Up: 2 falls below 1, so 4 (which would have won) is never run: the walk assumes one
     # peak. Down: 0.5 falls below 1, so 0.25 is not run.
     assert calls == [1.0, 2.0, 0.5]
@@ -306,7 +361,7 @@ def test_walk_sorts_the_grid_and_starts_each_direction_from_one():
     grid = np.array([1.0, 8.0, 0.25, 2.0, 4.0, 0.5])
     score, calls = _stub_scores({1.0: (5.0, 0), 2.0: (9.0, 0), 4.0: (7.0, 0), 8.0: (1.0, 0),
                                  0.5: (6.0, 0), 0.25: (4.0, 0)})
-    objective, dropped = ns.walk_stage(grid, score)
+    objective, dropped, _ = ns.walk_stage(grid, score)
     assert calls == [1.0, 2.0, 4.0, 0.5, 0.25]
     np.testing.assert_array_equal(dropped, [0, -1, 0, 0, 0, 0])
     assert ns.best_scale(grid, objective, dropped) == 2.0
@@ -335,9 +390,10 @@ def test_walk_with_workers_returns_the_sequential_walk(grid, table, workers, sto
     expected = ns.walk_stage(grid, score, stop)
     used = len(calls)
     calls.clear()
-    objective, dropped = ns.walk_stage(grid, score, stop, workers=workers)
+    objective, dropped, fill_step = ns.walk_stage(grid, score, stop, workers=workers)
     np.testing.assert_array_equal(objective, expected[0])
     np.testing.assert_array_equal(dropped, expected[1])
+    np.testing.assert_array_equal(fill_step, expected[2])
     assert len(set(calls)) == len(calls)  # each candidate at most once
     assert used <= len(calls) <= used + 2 * (workers - 1)
 
@@ -353,10 +409,10 @@ def test_walk_with_workers_scores_candidates_at_once_and_skips_known_ones():
     def score(scale):
         calls.append(scale)
         barrier.wait()
-        return ns.RunScore(*table[scale])
+        return _run(*table[scale])
 
-    objective, dropped = ns.walk_stage(GRID, score, workers=2,
-                                       known={1.0: ns.RunScore(5.0, 0)})
+    objective, dropped, _ = ns.walk_stage(GRID, score, workers=2,
+                                       known={1.0: _run(5.0, 0)})
     assert sorted(calls) == [2.0, 4.0]  # 4 falls below 2: the walk stops there
     np.testing.assert_array_equal(objective, [5.0, 9.0, 7.0, np.nan, np.nan])
     np.testing.assert_array_equal(dropped, [0, 0, 0, -1, -1])
@@ -378,10 +434,10 @@ def test_walk_starts_a_certainly_needed_candidate_while_it_waits():
             x8_started.set()
         if scale == 4.0:
             assert x8_started.wait(timeout=30.0), "x8 did not start while x4 ran"
-        return ns.RunScore(*table[scale])
+        return _run(*table[scale])
 
-    known = {1.0: ns.RunScore(5.0, 3)}
-    objective, dropped = ns.walk_stage(GRID, score, workers=2, known=known)
+    known = {1.0: _run(5.0, 3)}
+    objective, dropped, _ = ns.walk_stage(GRID, score, workers=2, known=known)
     assert sorted(calls) == [2.0, 4.0, 8.0]  # x8 falls below x4: x16 is never started
     expected = ns.walk_stage(GRID, _stub_scores(table)[0], known=known)
     np.testing.assert_array_equal(objective, expected[0])
@@ -406,8 +462,8 @@ def test_walk_reads_known_scores_and_ignores_what_it_does_not_use():
     one past the stop reads NaN and -1 like a candidate not run."""
     table = {1.0: (5.0, 0), 2.0: (9.0, 0), 4.0: (7.0, 0), 8.0: (8.0, 0), 16.0: (1.0, 0)}
     score, calls = _stub_scores(table)
-    known = {1.0: ns.RunScore(5.0, 0), 3.0: ns.RunScore(99.0, 0), 16.0: ns.RunScore(1.0, 0)}
-    objective, dropped = ns.walk_stage(GRID, score, workers=1, known=known)
+    known = {1.0: _run(5.0, 0), 3.0: _run(99.0, 0), 16.0: _run(1.0, 0)}
+    objective, dropped, _ = ns.walk_stage(GRID, score, workers=1, known=known)
     assert calls == [2.0, 4.0]
     np.testing.assert_array_equal(objective, [5.0, 9.0, 7.0, np.nan, np.nan])
     np.testing.assert_array_equal(dropped, [0, 0, 0, -1, -1])
@@ -422,13 +478,13 @@ def test_an_error_of_a_candidate_scored_ahead_of_the_stop_is_not_raised():
     def score(scale):
         if scale == 8.0:
             raise MemoryError("out of memory")
-        return ns.RunScore(*table[scale])
+        return _run(*table[scale])
 
-    objective, _ = ns.walk_stage(GRID, score, workers=3, known={1.0: ns.RunScore(5.0, 0)})
+    objective, _, _ = ns.walk_stage(GRID, score, workers=3, known={1.0: _run(5.0, 0)})
     np.testing.assert_array_equal(objective, [5.0, 9.0, 7.0, np.nan, np.nan])
     table[4.0] = (10.0, 0)  # now the walk goes on to x8
     with pytest.raises(MemoryError, match="out of memory"):
-        ns.walk_stage(GRID, score, workers=3, known={1.0: ns.RunScore(5.0, 0)})
+        ns.walk_stage(GRID, score, workers=3, known={1.0: _run(5.0, 0)})
 
 
 @pytest.mark.parametrize("bad", [0, -1, 1.5, True, "2"])
@@ -455,8 +511,8 @@ def test_search_passes_the_stop_through_and_its_verdict_says_what_was_not_run(mo
     params = _true_params()
 
     def stub(config, key, candidate, *args):
-        return ns.RunScore(-float(candidate.range_std_floor / params.range_std_floor)
-                           - float(candidate.rot1_noise[2] / params.rot1_noise[2]), 0)
+        return _run(-float(candidate.range_std_floor / params.range_std_floor)
+                    - float(candidate.rot1_noise[2] / params.rot1_noise[2]), 0)
 
     monkeypatch.setattr(ns, "run_score", stub)
     _, found = ns.search_noise_scales(CONFIG, jax.random.PRNGKey(0), params, controls, obs,
@@ -479,7 +535,7 @@ def test_search_passes_the_stop_through_and_its_verdict_says_what_was_not_run(mo
 def test_describe_search_names_runs_not_made_and_births_dropped():
     found = ns.ScaleSearch(2.0, 1.0, np.array([1.0, 2.0, 4.0]), np.array([3.0, 5.0, np.nan]),
                            np.array([1.0, 2.0]), np.array([5.0, 4.0]), np.array([0, 0, -1]),
-                           np.array([0, 0]))
+                           np.array([0, 0]), np.array([9, 9, -1]), np.array([9, 9]))
     line = ns.describe_search(found)
     assert line.startswith("motion [1.0, 2.0, 4.0] -> [3.0, 5.0, nan], observation [1.0, 2.0]")
     assert "nan where not run" in line and "births dropped" not in line
@@ -495,6 +551,7 @@ def test_describe_search_names_runs_not_made_and_births_dropped():
     assert "observation [0, 3]; -1: not run; a stopped run counts the births of the step it " \
         "stopped at" in stopped
     assert "a stopped run counts" not in full
+    assert "first full at step motion [9, 9, -1], observation [9, 9]" in full
 
 
 def test_run_score_counts_the_births_a_full_map_dropped():
@@ -516,9 +573,12 @@ def test_run_score_counts_the_births_a_full_map_dropped():
                                float(np.sum(np.asarray(trace.log_evidence))), rtol=1e-6)
     stopped = ns.run_score(small, key, _true_params(), controls, obs, poses[0])
     assert np.isnan(stopped.log_likelihood)
-    assert stopped.dropped_births == int(dropped[np.flatnonzero(dropped)[0]]) > 0
+    first = int(np.flatnonzero(dropped)[0])
+    assert stopped.dropped_births == int(dropped[first]) > 0
+    assert stopped.fill_step == whole.fill_step == first  # the map's first full step
     fits = ns.run_score(CONFIG, key, _true_params(), controls, obs, poses[0])
     assert fits.dropped_births == 0 and np.isfinite(fits.log_likelihood)
+    assert fits.fill_step == controls.shape[0]  # never full: the log's length
     assert fits == ns.run_score(CONFIG, key, _true_params(), controls, obs, poses[0],
                                 stop_at_dropped_birth=False)
 

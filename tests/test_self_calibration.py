@@ -541,11 +541,25 @@ def test_bad_scales_fail_before_any_filter_run(bad, monkeypatch):
     ([50.0, 1.0, 9.0, 3.0], [0, 0, 0, 0], 2),   # the starting run never wins; then the best
     ([50.0, 1.0, 9.0, 3.0], [0, 0, 7, 0], 3),   # a run whose map overflowed loses to one
                                                 # that did not, whatever its score
-    ([50.0, 1.0, 9.0, 3.0], [0, 4, 7, 2], 2),   # all EM runs overflowed: the score alone
+    ([50.0, 1.0, 9.0, 3.0], [0, 4, 7, 2], 2),   # all EM runs overflowed, no fill steps:
+                                                # the score alone
     ([50.0, np.nan, 9.0, 3.0], [0, 0, 7, 5], 2),  # the only run that kept room is not finite
 ])
 def test_best_run_ranks_overflowed_runs_last(objective, dropped, expected):
     assert sc._best_run(objective, dropped) == expected
+
+
+@pytest.mark.parametrize("objective, dropped, fill_step, expected", [
+    # Every EM run after the first overflowed: the map that filled last, not the score.
+    ([50.0, 1.0, 9.0, 3.0], [0, 4, 7, 2], [100, 30, 20, 60], 3),
+    ([50.0, 1.0, 9.0, 3.0], [0, 4, 7, 2], [100, 60, 20, 60], 1),  # a tie: the earlier run
+    ([50.0, 1.0, 9.0, 3.0], [9, 4, 7, 2], [90, 30, 20, 25], 1),  # the first run never wins
+    # A run that kept room wins whatever the fill steps: they only rank overflowed runs.
+    ([50.0, 1.0, 9.0, 3.0], [0, 4, 0, 2], [100, 30, 100, 90], 2),
+])
+def test_best_run_takes_the_map_that_filled_last_when_every_run_overflowed(
+        objective, dropped, fill_step, expected):
+    assert sc._best_run(objective, dropped, fill_step) == expected
 
 
 def test_progress_line_names_an_overflowed_run():
@@ -592,6 +606,19 @@ def test_dropped_births_recorded_when_the_map_overflows():
 ])
 def test_stalled_counts_the_runs_since_the_best(objective, dropped, patience, expected):
     assert sc._stalled(objective, dropped, patience) is expected
+
+
+def test_stalled_follows_the_fill_steps_when_every_run_overflowed():
+    # Run 1 scores best but its map filled first: run 3, whose map lasted longest, is the
+    # best, so two runs below run 1 do not stop EM; a later one that fills earlier does.
+    objective, dropped = [5.0, 9.0, 7.0, 8.0], [2, 3, 2, 1]
+    assert sc._stalled(objective, dropped, 2) is True  # no fill steps: the score alone
+    assert sc._stalled(objective, dropped, 2, [10, 20, 30, 40]) is False
+    assert sc._stalled(objective + [1.0, 2.0], dropped + [5, 5], 2,
+                       [10, 20, 30, 40, 35, 12]) is True
+    line = sc._stalled_line(6, objective + [1.0, 2.0], dropped + [5, 5], 2,
+                            [10, 20, 30, 40, 35, 12])
+    assert "none of the last 2 runs beat iteration 4's map, which lasted until step 40" in line
 
 
 def test_patience_stops_em_and_returns_the_best_run(monkeypatch):
