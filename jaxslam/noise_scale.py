@@ -79,17 +79,26 @@ twice the documented ~150 trees; motion x8) the observation scales x1, 2 and 4 a
 overflowed (223 k, 355 k and 199 k births dropped, summed over the 100 particles) and
 outscored x8, the only one that did not (log likelihood +70.8 k, +50.4 k and +46.1 k against
 +34.9 k). So a stage ranks by likelihood only the candidates whose run dropped no birth
-(``best_scale``). When none did, no score in that stage is a fair one, and the stage takes
-the candidate whose map filled last (the latest first step with a dropped birth; ties go to
-the scale nearest 1, EM's own, then to the grid's order): the broader a noise, the
-fewer trees it splits, so the map that lasts longest is the one that split the fewest. Its
-run's warnings then say the map was full. Before 2026-12-05 such a stage kept 1 (EM's own
-estimate), a rule settled after seeing on Victoria Park the GPS error of the motion scale it
-kept (x1) against the one the biased likelihood ranked first (x8), in-sample there. That
-rule failed on the same log once every observation candidate overflowed: x1, whose map
-filled first, was kept, and the run ended 101.5 m off (its x8 candidate dropped 6 births,
-at the step where its map filled). The current rule uses no ground truth; it was written
-after seeing that GPS error, so its Victoria Park numbers are in-sample (docs/results.md).
+(``best_scale``). When none did, no score in that stage is a fair one:
+
+- The observation stage takes the candidate whose map filled last (the latest first step
+  with a dropped birth; ties go to the scale nearest 1, EM's own, then to the grid's order).
+  The broader the sensor noise, the fewer observations of one tree fall outside its gate,
+  so the map that lasts longest is the one that split the fewest trees.
+- The motion stage keeps 1 (EM's own estimate). It runs at s_o = 1, so when every one of its
+  candidates overflows, the sensor noise is too narrow for this log, which this stage does
+  not set; a broader motion noise delays the overflow only by widening every gate with the
+  pose uncertainty, so taking it would make the motion noise absorb the sensor's misfit. The
+  observation stage that follows has its own overflow test.
+
+The run's warnings then say the map was full. Until 2026-12-05 both stages kept 1 then. That
+rule was settled after seeing on Victoria Park the GPS error of the motion scale it kept (x1)
+against the one the biased likelihood ranked first (x8), in-sample there. It failed on the
+same log once every observation candidate overflowed: x1, whose map filled first, was kept,
+and the run ended 101.5 m off (its x8 candidate dropped 6 births, at the step where its map
+filled). The present rule uses no ground truth, but it was written after seeing GPS errors
+on that log (the split between the stages after a second key's), so its Victoria Park
+numbers are in-sample (docs/results.md).
 Since an overflowed run cannot be chosen, a candidate's run stops after its first step that
 drops a birth (``run_score``; ``filter.scan_filter``'s ``stop_at_dropped_birth``): the rest of
 it could not change the choice, so only the time changes (on Victoria Park the candidates
@@ -387,9 +396,10 @@ def describe_search(found: ScaleSearch) -> str:
                  + ("; -1: not run" if not_run else "")
                  + ("; a stopped run counts the births of the step it stopped at"
                     if stopped else "")
-                 + "; only runs that dropped none compete, and a stage where every run "
-                 "dropped births takes the one whose map filled last: first full at step "
-                 f"motion {found.motion_fill_step.tolist()}, observation "
+                 + "; only runs that dropped none compete; when every run of a stage dropped "
+                 "births, the motion stage keeps x1 and the observation stage takes the run "
+                 "whose map filled last: first full at step motion "
+                 f"{found.motion_fill_step.tolist()}, observation "
                  f"{found.observation_fill_step.tolist()})")
     return line
 
@@ -431,9 +441,9 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
         result for every value); None: ``default_workers()``.
     Returns:
       (scaled ``Params``, ``ScaleSearch``; a candidate not run has objective NaN, dropped -1
-      and fill step -1). A stage whose candidates all score a non-finite value keeps 1; one
-      whose candidates all dropped births takes the run whose map filled last
-      (``best_scale``).
+      and fill step -1). A stage whose candidates all score a non-finite value keeps 1. When
+      every candidate dropped births, the motion stage keeps 1 and the observation stage takes
+      the run whose map filled last (``best_scale``, module docstring).
     """
     motion_scales = check_scales("motion_scales", motion_scales)
     observation_scales = check_scales("observation_scales", observation_scales)
@@ -455,7 +465,8 @@ def search_noise_scales(config: FilterConfig, key, params: Params, controls,
     motion_objective, motion_dropped, motion_fill = walk_stage(
         motion_scales, lambda m: score(m, 1.0), stop_at_first_drop, workers,
         known_of(1.0))
-    motion_scale = best_scale(motion_scales, motion_objective, motion_dropped, motion_fill)
+    # Every motion candidate overflowed: keep 1 (no fill steps; module docstring).
+    motion_scale = best_scale(motion_scales, motion_objective, motion_dropped)
     observation_objective, observation_dropped, observation_fill = walk_stage(
         observation_scales, lambda o: score(motion_scale, o), stop_at_first_drop, workers,
         known_of(motion_scale))

@@ -260,29 +260,37 @@ def test_fill_ties_go_to_the_scale_nearest_one_then_to_the_first():
 
 def test_search_ranks_runs_that_dropped_births_last(monkeypatch):
     """Scores stubbed (the rule, not the filter): narrow observation noise scores higher but
-    overflows the map below x4. Every motion candidate runs at x1 and overflows: the stage
-    takes x2, whose map filled last, though x8 scores highest; the observation stage takes
-    x4, and the search records what each run dropped and when its map filled."""
+    overflows the map below x4. Every motion candidate runs at x1 and overflows: the motion
+    stage keeps x1, though x8 scores highest and x2's map filled last; the observation stage
+    takes x4, and the search records what each run dropped and when its map filled. Then
+    every observation candidate overflows too: that stage takes x2, whose map filled last."""
     controls, obs, poses = _log()
     params = _true_params()
 
     def stub(config, key, candidate, *args):  # likelihood alone would take motion x8
         scale = float(candidate.range_std_floor / params.range_std_floor)
         motion = float(candidate.rot1_noise[2] / params.rot1_noise[2])
-        overflowed = scale < 4.0
-        fill = {1.0: 30, 2.0: 60, 4.0: 50, 8.0: 40}[motion] if overflowed else len(controls)
-        return ns.RunScore(100.0 + motion - scale, 1000 if overflowed else 0, fill)
+        overflowed = scale < fair_from
+        fill = {1.0: 30, 2.0: 60, 4.0: 50, 8.0: 40}[motion if scale == 1.0 else scale]
+        return ns.RunScore(100.0 + motion - scale, 1000 if overflowed else 0,
+                           fill if overflowed else len(controls))
 
+    fair_from = 4.0
     monkeypatch.setattr(ns, "run_score", stub)
     _, found = ns.search_noise_scales(CONFIG, jax.random.PRNGKey(0), params, controls, obs,
                                       poses[0])
-    assert found.motion_scale == 2.0  # every motion candidate (at s_o = 1) overflowed
+    assert found.motion_scale == 1.0  # every motion candidate (at s_o = 1) overflowed
     np.testing.assert_array_equal(found.motion_dropped, [1000, 1000, 1000, 1000])
     np.testing.assert_array_equal(found.motion_fill_step, [30, 60, 50, 40])
     assert found.observation_scale == 4.0
     np.testing.assert_array_equal(found.observation_dropped, [1000, 1000, 0, 0])
     np.testing.assert_array_equal(found.observation_fill_step,
-                                  [60, 60, len(controls), len(controls)])
+                                  [30, 60, len(controls), len(controls)])
+    fair_from = 16.0  # no observation candidate keeps every birth either
+    _, found = ns.search_noise_scales(CONFIG, jax.random.PRNGKey(0), params, controls, obs,
+                                      poses[0])
+    assert found.motion_scale == 1.0 and found.observation_scale == 2.0
+    np.testing.assert_array_equal(found.observation_fill_step, [30, 60, 50, 40])
 
 
 STUB_STEPS = 100  # the stubbed runs' log length
