@@ -562,8 +562,9 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         dead-reckoning to filter ATE was 1.63 with it against 2.19 without.
       scale_search: after EM, multiply the motion and then the observation noise by the
         multipliers in ``scales`` (must contain 1) of highest filter log marginal likelihood
-        among the runs whose map never overflowed (a stage where every run overflowed keeps
-        1; ``noise_scale.search_noise_scales``, EM's key; only the groups EM fitted): EM on
+        among the runs whose map never overflowed (when every run of a stage overflowed, the
+        motion stage keeps 1 and the observation stage takes the run whose map filled last;
+        ``noise_scale.search_noise_scales``, EM's key; only the groups EM fitted): EM on
         a poor association shrinks the noise. ``converged`` and ``relative_std`` still describe
         EM's own estimate. Costs at most 2 len(scales) - 1 more filter runs (one fewer when
         EM did not converge: its best run is reused), fewer when a stage's score falls past
