@@ -101,9 +101,10 @@ and the run ended 101.5 m off (its x8 candidate dropped 6 births, at the step wh
 filled). The present rule uses no ground truth, but it was written after seeing GPS errors
 on that log (the split between the stages after a second key's), so its Victoria Park
 numbers are in-sample (docs/results.md).
-Since an overflowed run cannot be chosen, a candidate's run stops after its first step that
-drops a birth (``run_score``; ``filter.scan_filter``'s ``stop_at_dropped_birth``): the rest of
-it could not change the choice, so only the time changes (on Victoria Park the candidates
+An overflowed run's score never competes, and its fill step is known at the first step that
+drops a birth, so a candidate's run stops there (``run_score``; ``filter.scan_filter``'s
+``stop_at_dropped_birth``): the rest of it could not change the choice, so only the time
+changes (on Victoria Park the candidates
 that overflowed dropped their first birth 57-67 % into the log, measured on 2026-12-03).
 
 Shapes: S candidates, T steps, K observations a step.
@@ -255,7 +256,8 @@ def best_scale(scales, objective, dropped=None, fill_step=None) -> float:
         return float(scales[int(np.argmax(objective))])
     if dropped is None or fill_step is None or not np.any(np.asarray(dropped) > 0):
         return 1.0
-    return float(scales[latest_fill(dropped, fill_step, np.abs(np.log(scales)))])
+    # Rounded: 1/3 and 3 (say) must tie however the logs round.
+    return float(scales[latest_fill(dropped, fill_step, np.round(np.abs(np.log(scales)), 12))])
 
 
 def latest_fill(dropped, fill_step, tie_key=None) -> int:
@@ -391,7 +393,7 @@ def describe_search(found: ScaleSearch) -> str:
         line += " (nan where not run: the score had already fallen past its peak)"
     if stopped:
         line += (" (nan where a run stopped at its first dropped birth: the map was full, so "
-                 "it could not be chosen)")
+                 "its score cannot compete; only its fill step counts)")
     if np.any(dropped > 0):
         line += (f" (births dropped, map full: motion {found.motion_dropped.tolist()}, "
                  f"observation {found.observation_dropped.tolist()}"

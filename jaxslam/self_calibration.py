@@ -152,6 +152,9 @@ class CalibrationInfo(NamedTuple):
         (``motion_outlier_probability`` and ``motion_outlier_scale`` fitted); False when it
         kept the defensive ones (``defensive_bursts``), None when no motion fit lies behind
         them.
+      fill_steps: (iterations,) int64 each filter run's first step that dropped a birth (the
+        log's length T when none did): ``_best_run`` ranks by it when no later run kept every
+        birth with a finite score.
     """
 
     iterations: int
@@ -167,6 +170,7 @@ class CalibrationInfo(NamedTuple):
     noise_scales: ScaleSearch | None = None
     dropped_births: np.ndarray | None = None
     bursts_fitted: bool | None = None
+    fill_steps: np.ndarray | None = None
 
 
 def starting_params(config: FilterConfig | None = None, dtype=jnp.float32, **overrides) -> Params:
@@ -420,11 +424,15 @@ def _best_run(objective, dropped, fill_step=None) -> int:
     scores = np.asarray(objective, np.float64)
     scores[0] = -np.inf if len(scores) > 1 else scores[0]
     full = np.asarray(dropped) > 0
+    if fill_step is not None and _chosen_by_fill(objective, dropped):
+        first = 1 if len(scores) > 1 else 0  # the first run is never returned (above)
+        later = np.asarray(dropped)[first:]
+        # A run whose score is not finite (a broken run) is taken only if every one is.
+        finite = np.isfinite(scores[first:])
+        eligible = np.where(finite, later, 0) if np.any(finite & (later > 0)) else later
+        return first + latest_fill(eligible, np.asarray(fill_step)[first:])
     if np.any(np.isfinite(scores) & ~full):
         scores = np.where(full, -np.inf, scores)
-    elif fill_step is not None and np.any(full[1:] if len(scores) > 1 else full):
-        first = 1 if len(scores) > 1 else 0  # the first run is never returned (above)
-        return first + latest_fill(np.asarray(dropped)[first:], np.asarray(fill_step)[first:])
     if not np.any(np.isfinite(scores)):
         return len(scores) - 1
     return int(np.argmax(np.where(np.isfinite(scores), scores, -np.inf)))
@@ -454,24 +462,31 @@ def _fit_warnings(last: _MStep | None, steps: int) -> list[str]:
 
 
 def _progress_line(iteration: int, objective: float, typical, change: float,
-                   dropped: int = 0) -> str:
-    full = (f", map full: {dropped} births dropped (if EM does not converge, the run whose "
-            f"settings are returned is chosen among the later runs that dropped none, when "
-            f"there are any, else it is the one whose map filled last)" if dropped else "")
+                   dropped: int = 0, fill_step: int | None = None) -> str:
+    at = "" if fill_step is None else f" from step {fill_step}"
+    full = (f", map full{at}: {dropped} births dropped (if EM does not converge, the run "
+            f"whose settings are returned is chosen among the later runs that dropped none, "
+            f"when there are any, else it is the one whose map filled last)"
+            if dropped else "")
     return (f"calibration iteration {iteration}: log marginal likelihood {objective:.1f}{full}, "
             f"typical stds heading {typical[0]:.4g} rad, translation {typical[1]:.4g} m, "
             f"range {typical[2]:.4g} m, bearing {typical[3]:.4g} rad (largest change "
             f"{change:.1%})")
 
 
-def _every_later_map_overflowed(dropped) -> bool:
-    """Whether every filter run after the first dropped births (dropped (R,), R >= 2)."""
-    return len(dropped) > 1 and all(count > 0 for count in dropped[1:])
+def _chosen_by_fill(objective, dropped) -> bool:
+    """Whether ``_best_run`` ranks EM's runs by their fill step: no run it may return (every
+    run after the first; the only one when there is one) kept every birth with a finite
+    score, and one of them overflowed. objective (R,), dropped (R,)."""
+    first = 1 if len(objective) > 1 else 0
+    scores = np.asarray(objective, np.float64)[first:]
+    later = np.asarray(dropped)[first:]
+    return not np.any(np.isfinite(scores) & (later == 0)) and bool(np.any(later > 0))
 
 
 def _stalled_line(iteration: int, objective, dropped, patience: int, fill_step) -> str:
     best = _best_run(objective, dropped, fill_step)
-    if _every_later_map_overflowed(dropped):  # ``_best_run`` ranks by the fill step
+    if _chosen_by_fill(objective, dropped):  # ``_best_run`` ranks by the fill step
         beaten = f"map, which lasted until step {fill_step[best]}"
     else:
         beaten = f"{objective[best]:.1f}"
@@ -639,7 +654,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         new_typical = typical_stds(params, odometry, z_range)
         change = np.max(np.abs(new_typical / typical[-1] - 1.0))
         if progress is not None:
-            progress(_progress_line(done, objective[-1], new_typical, change, dropped[-1]))
+            progress(_progress_line(done, objective[-1], new_typical, change, dropped[-1],
+                                    runs[-1].fill_step))
         if change < tol:
             converged = True
             break
@@ -652,8 +668,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         kept = int(np.sum(np.asarray(dropped[1:]) == 0))
         among = (f", among the {kept} whose map never overflowed"
                  if 0 < kept < len(evaluated) - 1 else "")
-        why = (f"every later map overflowed; its map filled last, at step "
-               f"{runs[best].fill_step}" if _every_later_map_overflowed(dropped) else
+        why = (f"no later run kept every birth with a finite score; its map filled last, "
+               f"at step {runs[best].fill_step}" if _chosen_by_fill(objective, dropped) else
                f"the highest log marginal likelihood of the {len(evaluated)} filter "
                f"runs{among}")
         chosen = f"; returned iteration {best + 1}'s settings ({why})"
@@ -692,4 +708,5 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     return params, CalibrationInfo(done, np.asarray(objective), np.asarray(costs),
                                    np.asarray(typical), values, relative_std, samples,
                                    converged, verdict, tuple(warnings), found,
-                                   np.asarray(dropped, np.int64), bursts_fitted)
+                                   np.asarray(dropped, np.int64), bursts_fitted,
+                                   np.asarray([run.fill_step for run in runs], np.int64))

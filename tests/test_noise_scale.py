@@ -221,8 +221,8 @@ def test_best_scale(objective, expected):
 def test_best_scale_prefers_runs_whose_map_never_overflowed(objective, dropped, expected):
     assert ns.best_scale(np.array([1.0, 2.0, 4.0, 8.0]), np.array(objective),
                          np.array(dropped)) == expected
-    # The fill steps only decide among overflowed runs when no run is fair (next test):
-    # with a fair run, or without any overflowed run, they change nothing.
+    # The fill steps only decide among overflowed runs when no fair run has a finite score
+    # (next test): otherwise, or without any overflowed run, they change nothing.
     fair = np.array(dropped) == 0
     if np.any(fair & np.isfinite(objective)) or not np.any(np.array(dropped) > 0):
         assert ns.best_scale(np.array([1.0, 2.0, 4.0, 8.0]), np.array(objective),
@@ -236,9 +236,9 @@ def test_best_scale_prefers_runs_whose_map_never_overflowed(objective, dropped, 
     # run's total against a stopped run's one step), then to the first.
     ([np.nan] * 4, [900, 4, 6, 1], [70, 70, 70, 70], 1.0),
     ([np.nan] * 4, [5, 6, 6, 1], [10, 70, 70, 70], 2.0),
-    # Runs not run (-1) never win; a fair run with a non-finite score is not an overflowed
-    # one, so the fill steps decide among the overflowed x1 and x8.
-    ([np.nan, np.nan, np.nan, np.nan], [3, -1, 0, 2], [20, -1, 100, 30], 8.0),
+    # Runs not run (dropped -1) never win, whatever their fill step says; a fair run with a
+    # non-finite score is not an overflowed one, so the fill steps decide among x1 and x8.
+    ([np.nan, np.nan, np.nan, np.nan], [3, -1, 0, 2], [20, 999, 100, 30], 8.0),
     # Nothing overflowed and nothing finite: keep EM's x1.
     ([np.nan, np.inf, np.nan, np.nan], [0, 0, -1, 0], [100, 100, -1, 100], 1.0),
 ])
@@ -256,6 +256,11 @@ def test_fill_ties_go_to_the_scale_nearest_one_then_to_the_first():
     assert ns.best_scale(grid, objective, dropped, np.array([60, 40, 100, 60, 50])) == 2.0
     assert ns.latest_fill([2, 2, 2], [5, 9, 9]) == 1  # no tie key: the first of the tie
     assert ns.latest_fill([0, 0], [7, 7]) == -1  # nothing overflowed
+    # Symmetric scales tie in |log s| although their logs need not round alike.
+    assert ns.best_scale(np.array([1.0, 3.0, 1.0 / 3.0]), np.full(3, np.nan),
+                         np.array([5, 1, 1]), np.array([10, 40, 40])) == 3.0
+    assert ns.best_scale(np.array([1.0, 1.0 / 3.0, 3.0]), np.full(3, np.nan),
+                         np.array([5, 1, 1]), np.array([10, 40, 40])) == 1.0 / 3.0
 
 
 def test_search_ranks_runs_that_dropped_births_last(monkeypatch):

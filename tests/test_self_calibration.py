@@ -562,6 +562,70 @@ def test_best_run_takes_the_map_that_filled_last_when_every_run_overflowed(
     assert sc._best_run(objective, dropped, fill_step) == expected
 
 
+@pytest.mark.parametrize("objective, dropped, fill_step, expected", [
+    # A later run kept every birth but scored NaN: no fair run has a finite score, so the
+    # fill steps decide among the overflowed ones, and the messages say so (next test).
+    ([5.0, np.nan, 9.0, 3.0], [0, 0, 7, 2], [100, 100, 20, 60], 3),
+    # An overflowed run with a NaN score loses to an overflowed finite one, whatever its fill.
+    ([5.0, np.nan, 1.0], [0, 4, 7], [100, 90, 20], 2),
+    ([5.0, np.nan, np.nan], [0, 4, 7], [100, 90, 20], 1),  # all broken: the fill alone
+    ([5.0], [3], [40], 0),  # one run: it is the only one to return
+])
+def test_best_run_by_fill_step_edges(objective, dropped, fill_step, expected):
+    assert sc._best_run(objective, dropped, fill_step) == expected
+    assert sc._chosen_by_fill(objective, dropped)
+    line = sc._stalled_line(9, objective, dropped, 2, fill_step)
+    assert f"map, which lasted until step {fill_step[expected]}" in line
+
+
+def test_em_returns_the_latest_filling_run_and_hands_it_to_the_search(monkeypatch):
+    """EM's filter runs scripted (the real runs, their log evidence and dropped births
+    replaced): every run overflows, at steps 50, 20, 90, 40, 30. With patience 2 EM stops
+    after the fifth run and returns run 3's settings (its map filled last, though run 2
+    scores highest); the verdict, the progress lines and ``fill_steps`` say so, and the
+    search receives run 3's ``RunScore`` as its known x1."""
+    from jaxslam import filter as filter_module
+    from jaxslam.noise_scale import RunScore
+
+    scores, fills = [0.0, 10.0, 5.0, 4.0, 3.0], [50, 20, 90, 40, 30]
+    scripted = iter(zip(scores, fills))
+
+    def scored_run(*args, **kwargs):
+        final, trace = filter_module.run_filter(*args, **kwargs)
+        total, fill = next(scripted)
+        births = jnp.zeros_like(trace.num_dropped_births).at[fill].set(7).at[fill + 5].set(2)
+        return final, trace._replace(
+            log_evidence=jnp.zeros_like(trace.log_evidence).at[0].set(total),
+            num_dropped_births=births)
+
+    class Handed(Exception):
+        pass
+
+    def search(*args, known=None, **kwargs):
+        raise Handed(known)
+
+    monkeypatch.setattr(sc, "run_filter", scored_run)
+    controls, obs, poses = _log()
+    lines = []
+    _, info = sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0],
+                                  iterations=6, tol=1e-9, scale_search=False,
+                                  progress=lines.append)
+    assert info.iterations == 5 and not info.converged
+    np.testing.assert_array_equal(info.fill_steps, fills)
+    np.testing.assert_array_equal(info.dropped_births, [9] * 5)
+    assert ("returned iteration 3's settings (no later run kept every birth with a finite "
+            "score; its map filled last, at step 90)") in info.verdict
+    assert "none of the last 2 runs beat iteration 3's map, which lasted until step 90" \
+        in lines[-1]
+    assert "map full from step 50: 9 births dropped" in lines[0]
+    scripted = iter(zip(scores, fills))
+    monkeypatch.setattr(sc, "search_noise_scales", search)
+    with pytest.raises(Handed) as handed:
+        sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0],
+                            iterations=6, tol=1e-9)
+    assert handed.value.args[0] == RunScore(5.0, 9, 90)
+
+
 def test_progress_line_names_an_overflowed_run():
     """An EM run whose map overflowed says so on its progress line (if EM does not converge,
     it is passed over when another run kept every birth); one that did not overflow says
@@ -590,7 +654,9 @@ def test_dropped_births_recorded_when_the_map_overflows():
     want = int(np.sum(np.asarray(trace.num_dropped_births)))
     assert want > 0
     np.testing.assert_array_equal(info.dropped_births, [want])
-    assert f"map full: {want} births dropped" in lines[0]
+    first = int(np.flatnonzero(np.asarray(trace.num_dropped_births))[0])
+    assert f"map full from step {first}: {want} births dropped" in lines[0]
+    assert info.fill_steps.tolist() == [first]
 
 
 @pytest.mark.parametrize("objective, dropped, patience, expected", [
