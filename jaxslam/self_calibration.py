@@ -608,7 +608,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                    f"{MIN_SIGHTINGS} or more times: the given settings are used")
         return params, CalibrationInfo(0, np.zeros(0), np.zeros(0), np.zeros((0, 4)), {}, {},
                                        {}, False, "not calibrated: too few observations",
-                                       (warning,), None, np.zeros(0, np.int64))
+                                       (warning,), None, np.zeros(0, np.int64), None,
+                                       np.zeros(0, np.int64))
     objective, dropped, costs, typical, evaluated, warnings = [], [], [], [], [], []
     runs = []  # each EM filter run's RunScore
     values = {}
@@ -697,7 +698,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     elif stalled:
         verdict = (f"not converged: stopped after {done} iterations (none of the last "
                    f"{patience} runs beat the best run before them: the highest log "
-                   "marginal likelihood, or the latest-filling map when every map overflowed)")
+                   "marginal likelihood, or the latest-filling map when no run after the "
+                   "first kept every birth with a finite score)")
     else:
         verdict = (f"not converged after {done} iterations (the last moved a noise std by "
                    f"more than {tol:.0%})")
