@@ -85,8 +85,9 @@ outscored x8, the only one that did not (log likelihood +70.8 k, +50.4 k and +46
   with a dropped birth; ties go to the scale nearest 1, EM's own, then to the grid's order).
   The broader the sensor noise, the fewer observations of one tree fall outside its gate,
   so the map that lasts longest is the one that split the fewest trees. The fill step is a
-  noisy sign of that: in three of the four such stages recorded on Victoria Park it rose
-  with the scale, in the fourth x8 filled before x2 and x4 (docs/results.md).
+  noisy sign of that: in five of the six observation stages recorded on Victoria Park on
+  2026-12-05 it rose with the scale; in the sixth (after a widened EM start that was not
+  kept) x8 filled before x2 and x4 (docs/results.md).
 - The motion stage keeps 1 (EM's own estimate). It runs at s_o = 1, so when every one of its
   candidates overflows, the sensor noise is too narrow for this log, which this stage does
   not set; a broader motion noise delays the overflow only by widening every gate with the
