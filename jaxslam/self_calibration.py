@@ -611,7 +611,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                                        (warning,), None, np.zeros(0, np.int64), None,
                                        np.zeros(0, np.int64))
     objective, dropped, costs, typical, evaluated, warnings = [], [], [], [], [], []
-    runs = []  # each EM filter run's RunScore
+    runs, fill_steps = [], []  # each EM filter run's RunScore, and its fill step
     values = {}
     converged, stalled, last, m_steps = False, False, None, []
     controls = jnp.asarray(log.controls, dtype)
@@ -630,8 +630,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         runs.append(score_trace(trace, stopped_at_dropped_birth=False))
         objective.append(runs[-1].log_likelihood)
         dropped.append(runs[-1].dropped_births)
+        fill_steps.append(runs[-1].fill_step)
         evaluated.append(params)
-        fill_steps = [run.fill_step for run in runs]
         if _stalled(objective, dropped, patience, fill_steps):
             stalled = True
             if progress is not None:
@@ -656,13 +656,13 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         change = np.max(np.abs(new_typical / typical[-1] - 1.0))
         if progress is not None:
             progress(_progress_line(done, objective[-1], new_typical, change, dropped[-1],
-                                    runs[-1].fill_step))
+                                    fill_steps[-1]))
         if change < tol:
             converged = True
             break
     chosen, known, source = "", None, last  # source: the M-step behind ``params``
     if not converged:
-        best = _best_run(objective, dropped, [run.fill_step for run in runs])
+        best = _best_run(objective, dropped, fill_steps)
         source = m_steps[best - 1] if 1 <= best <= len(m_steps) else None
         params, known = evaluated[best], runs[best]
         values = {name: _plain(getattr(params, name)) for name in values}
@@ -670,7 +670,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         among = (f", among the {kept} whose map never overflowed"
                  if 0 < kept < len(evaluated) - 1 else "")
         why = (f"no later run kept every birth with a finite score; its map filled last, "
-               f"at step {runs[best].fill_step}" if _chosen_by_fill(objective, dropped) else
+               f"at step {fill_steps[best]}" if _chosen_by_fill(objective, dropped) else
                f"the highest log marginal likelihood of the {len(evaluated)} filter "
                f"runs{among}")
         chosen = f"; returned iteration {best + 1}'s settings ({why})"
@@ -711,4 +711,4 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                                    np.asarray(typical), values, relative_std, samples,
                                    converged, verdict, tuple(warnings), found,
                                    np.asarray(dropped, np.int64), bursts_fitted,
-                                   np.asarray([run.fill_step for run in runs], np.int64))
+                                   np.asarray(fill_steps, np.int64))

@@ -354,13 +354,14 @@ def test_adaptive_ratio_rises_on_odometry_fault():
     the loose boundary stopped using the matching pose covariance
     (``tests/test_matching_airlock.py``), is now matched by the burst piece of the default
     proposal (kappa 8: 0.17 m std), so the likelihood hardly drops and the augmented term
-    rises by 0.05 only: explaining such slips is the bursts' job. Paired with the fault-free run under the same key (identical up to
-    step 29; from step 30 the fault's own control enters phi through the motion draws'
-    efficiency), the augmented-MCL phi at steps 31-33 (from the likelihood averages before
-    each step) is higher by at least 0.1 on average. The phi the particles used (their mean,
-    ``trace.mixture_ratio``) never falls below that floor and stays in [mixture_min,
-    mixture_max]; with this accurate lidar it sits near phi_max already without the fault
-    (the efficiency term), and the fault takes it to within 1e-3 of phi_max.
+    rises by 0.05 only: explaining such slips is the bursts' job. Paired with the fault-free
+    run under the same key (identical up to step 29; from step 30 the fault's own control
+    enters phi through the motion draws' efficiency), the augmented-MCL phi at steps 31-33
+    (from the likelihood averages before each step) is higher by at least 0.1 on average.
+    The phi the particles used (their mean, ``trace.mixture_ratio``) never falls below that
+    floor and stays in [mixture_min, mixture_max]; with this accurate lidar it sits near
+    phi_max already without the fault (the efficiency term), and the fault takes it to
+    within 1e-3 of phi_max.
 
     The single-run signal is weak: fault-free spikes reach 0.5-0.7 (likelihood_rate_fast=0.5),
     so the comparison is paired rather than against a threshold (see the report)."""
