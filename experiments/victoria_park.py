@@ -162,14 +162,14 @@ def calibration_lines(calibration) -> list[str]:
     values = calibration["values"]
     lines = ["### Calibration from the log (GPS unused)", "",
              f"jaxslam.pipeline.filter_log(calibrate=True) on the log as a RobotLog "
-             f"(calibrate_params: EM with the smoother), then the trunk-radius std from the "
-             f"within-tree radius scatter of that run: {calibration['seconds']:.0f} s, "
+             f"(calibrate_params: EM with the smoother; the trunk-radius std from the "
+             f"within-landmark radius scatter in each M-step): {calibration['seconds']:.0f} s, "
              f"{calibration['iterations']} EM iterations, {calibration['verdict']}.", "",
              "| field | calibrated value |", "|---|---|"]
     lines += [f"| {name} | {_fmt(value)} |" for name, value in values.items()]
     lines += [f"| radius_noise (from {calibration['radius_samples']} observations) | "
               f"{calibration['radius_noise']:.4g} |",
-              f"| filter_log's own run (its key, without the radius): online RMSE [m] / trees "
+              f"| filter_log's own run (its key): online RMSE [m] / trees "
               f"| {calibration['online_rmse']:.2f} / {calibration['num_trees']} |", ""]
     if calibration["warnings"]:
         lines += ["Warnings: " + "; ".join(calibration["warnings"]), ""]

@@ -59,7 +59,6 @@ from jaxslam.datasets.victoria_park import (
 from jaxslam.detect import detect_trunks
 from jaxslam.filter import estimate, run_filter
 from jaxslam.metrics import align_se2
-from jaxslam.noise_fit import radius_noise_from_history
 from jaxslam.types import FilterConfig, Observations, Params, default_params
 
 # The classic detector's figures (dataset README, "Known figures"): beams under 75 m, segments
@@ -513,13 +512,14 @@ class VictoriaParkCalibration(NamedTuple):
     """``calibrate_victoria_park``'s result.
 
     Attributes:
-      params: the calibrated ``Params`` (``calibrate_params`` and ``radius_noise``).
+      params: the calibrated ``Params`` (``calibrate_params``, ``radius_noise`` included).
       info: ``self_calibration.CalibrationInfo`` of the EM.
-      radius_noise / radius_samples: ``radius_noise_from_history`` of the calibrated run.
+      radius_noise / radius_samples: the fitted trunk-radius std and the radii behind it
+        (nan / 0 when it was not fitted).
       steering_bias: the bias [rad] the controls were corrected with.
       seconds: wall time of the calibration (filter_log: EM iterations and one final run).
       path: (T, 3) the weighted-mean path of filter_log's final run (key of the calibration,
-        calibrated Params without the radius); num_trees: its final map size.
+        calibrated Params); num_trees: its final map size.
       warnings: filter_log's warnings.
     """
 
@@ -560,9 +560,9 @@ def calibrate_victoria_park(key, data: VictoriaPark, settings: str | Settings = 
        on the log as a ``RobotLog`` (``victoria_park_robot_log``): EM with the smoother
        (``self_calibration.calibrate_params``) for the motion noise (Geiser et al. 2023,
        Eq. 1, with its burst tail), range/bearing noise, max_range, miss_range, field of
-       view, detection / false-alarm probabilities and the gate, then one run with them;
-    3. ``radius_noise`` from the scatter of the detected radii within the trees of that
-       run's best particle (``radius_noise_from_history``).
+       view, detection / false-alarm probabilities, the trunk-radius std (from the scatter
+       of the detected radii within each smoothed landmark, when the set lists
+       ``radius_noise`` as calibrated) and the gate, then one run with them.
 
     Args: as ``run_victoria_park``; ``progress``: optional callable(str) for each EM step;
     ``config``: the FilterConfig to calibrate with (default ``settings_config(settings)``).
@@ -574,20 +574,18 @@ def calibrate_victoria_park(key, data: VictoriaPark, settings: str | Settings = 
     robot_log, observations, bias = calibration_log(data, settings, config, observations,
                                                     num_scans)
     start = time.perf_counter()
+    options = {"calibrate_radius": "radius_noise" in settings.calibrated}
     run = filter_log(robot_log, config, settings_params(settings, config), key,
-                     calibrate=settings.calibrate, smooth=False, progress=progress)
-    history = lineage.trace_lineage(run.trace.lineage, run.estimate.best_particle)
-    ids, _ = lineage.landmark_identities(history.match, history.birth_slot)
-    params = run.params
-    radius_noise, samples = radius_noise_from_history(ids, observations.radius,
-                                                      observations.valid)
-    if "radius_noise" in settings.calibrated and np.isfinite(radius_noise):
-        params = params._replace(radius_noise=jnp.asarray(radius_noise,
-                                                          params.radius_noise.dtype))
+                     calibrate=settings.calibrate, smooth=False, progress=progress,
+                     calibration_options=options)
+    info = run.calibration
+    fitted = info is not None and "radius_noise" in info.values
     seconds = time.perf_counter() - start
     return VictoriaParkCalibration(
-        params=params, info=run.calibration, radius_noise=radius_noise,
-        radius_samples=samples, steering_bias=bias, seconds=seconds, path=run.mean_pose,
+        params=run.params, info=info,
+        radius_noise=float(info.values["radius_noise"]) if fitted else float("nan"),
+        radius_samples=int(info.samples.get("radius", 0)) if fitted else 0,
+        steering_bias=bias, seconds=seconds, path=run.mean_pose,
         num_trees=int(np.sum(np.asarray(run.estimate.active))), warnings=run.warnings)
 
 

@@ -25,7 +25,10 @@ From one EM iteration's smoothed solution (``calibration_residuals.Residuals``) 
                     the 99 % quantile of the squared whitened innovations at the filter's own
                     pose, so the gate covers the pose error a FastSLAM 1.0 innovation leaves
                     out (Montemerlo et al., "FastSLAM: A Factored Solution to the
-                    Simultaneous Localization and Mapping Problem", AAAI 2002).
+                    Simultaneous Localization and Mapping Problem", AAAI 2002); when the
+                    trunk radius joins the distance (``radius_noise`` > 0), that gate moved to
+                    three degrees of freedom at the same tail probability
+                    (``gate_with_radius``).
 
 The predicted measurements are ``geometry.range_bearing`` and their std ``ekf.measurement_std``,
 evaluated in float64 on the host (``host.in_float64``) on blocks of fixed
@@ -170,6 +173,24 @@ def _association_gate(res: Residuals, used: np.ndarray) -> dict:
     if inlier.sum() < MIN_OBSERVATIONS:
         return {}
     return {"association_gate": float(np.clip(np.quantile(nis[inlier], 0.99), *GATE_LIMITS))}
+
+
+def gate_with_radius(gate):
+    """The association gate for distances that carry the trunk radius too.
+
+    With ``Params.radius_noise`` > 0 the filter adds the radius term d_r2 (one degree of
+    freedom, ``ekf.radius_distance_sq``) to the position's squared distance (two), so a
+    correct pair's distance is chi-square with 3 degrees of freedom instead of 2. The gate
+    that refuses a correct pair equally rarely solves P(chi2_3 > g3) = P(chi2_2 > g) =
+    exp(-g / 2): g3 = chi2_3.isf(exp(-g / 2)) (13.82 -> 16.27, 25 -> 27.9). ``gate``: a
+    scalar or array of 2-dof gates (> 0); returns the same shape, float64.
+    """
+    import scipy.stats
+
+    gate = np.asarray(gate, np.float64)
+    if not np.all(gate > 0):
+        raise ValueError(f"gate_with_radius needs gates > 0; got {gate}")
+    return scipy.stats.chi2.isf(np.exp(-0.5 * gate), 3)
 
 
 def sensor_update(res: Residuals, z, valid, used: np.ndarray, smoothed_path, landmark,

@@ -27,6 +27,13 @@ estimation use, with the particle filter as the E-step's data associator:
            (``defensive_bursts``) and a std widened to cover 95 % of the residuals;
          * sensor (``detection_fit``): ``max_range``, ``miss_bearing``, ``miss_range``,
            ``detection_probability``, ``false_alarm_probability`` and ``association_gate``;
+         * trunk radius, when the observations carry measured radii: ``radius_noise``, the
+           std that covers 95 % of the scatter of the radii within each smoothed landmark
+           (``noise_fit.radius_noise_from_history``). It is kept apart: EM's runs match
+           without it, and only the returned settings get it (below), so that the std is
+           fitted to an association the radius did not shape (a std fitted inside the
+           loop narrows itself: a tight std splits a tree, and each piece's radii scatter
+           less than the whole tree's);
          * ``association_heading_std`` (with the motion noise): the root-mean-square heading
            std that the fitted Eq. (1) gives over the log's own moves
            (``calibration_residuals.typical_stds``). It stands for a heading error of a
@@ -46,6 +53,10 @@ estimation use, with the particle filter as the E-step's data associator:
       6. limit each noise group's move to a factor ``TRUST_FACTOR`` an iteration
          (``_trust_region``), and stop when every group's typical std moved by less than
          ``tol`` (relative);
+    then the returned settings get the radius std of the M-step behind them, with the fitted
+    gate moved to 3 degrees of freedom at the same tail probability
+    (``detection_fit.gate_with_radius``: the radius adds one to the matching distance; the
+    airlock's position-only width keeps the 2-dof gate's root);
     then (``scale_search``) multiply the motion and the observation noise by the factors of a
     small grid whose filter log marginal likelihood is highest (``noise_scale``): on a log
     whose association EM could not get right (trees split, no loop closure) the M-step's
@@ -92,7 +103,7 @@ import numpy as np
 
 from jaxslam import lineage, smoothing
 from jaxslam.calibration_residuals import smoothed_residuals, typical_stds
-from jaxslam.detection_fit import sensor_update, single_share
+from jaxslam.detection_fit import gate_with_radius, sensor_update, single_share
 from jaxslam.filter import run_filter
 from jaxslam.landmark_merge import merge_split_landmarks, relabel
 from jaxslam.motion import control_to_odometry
@@ -100,8 +111,8 @@ from jaxslam.noise_scale import (DEFAULT_SCALES, MOTION_FIELDS, OBSERVATION_FIEL
                                  check_scales, check_workers, describe_search,
                                  latest_fill, score_trace, search_noise_scales)
 from jaxslam.noise_fit import (MIN_MOVES, MIN_OBSERVATIONS, MIN_SIGHTINGS, STD_FLOOR,
-                               group_relative_errors, motion_noise_update,
-                               observation_noise_update)
+                               group_relative_errors, measured_radii, motion_noise_update,
+                               observation_noise_update, radius_noise_from_history)
 from jaxslam.types import FilterConfig, Observations, Params, default_params
 
 START_DETECTION = 0.1  # the first iteration's detection probability (``starting_params``)
@@ -321,6 +332,8 @@ class _MStep(NamedTuple):
     used: int  # observations of landmarks seen ``MIN_SIGHTINGS`` times or more
     relative_std: dict  # group -> relative standard error of its fitted std
     bursts_fitted: bool  # the motion fit found bursts (else it kept the defensive ones)
+    radius: dict | None = None  # {"radius_noise": std}, applied after EM (``_with_radius``)
+    radius_used: int = 0  # measured radii behind ``radius`` (0: not fitted)
 
 
 def _merged(smoothed: smoothing.Smoothed, smooth) -> smoothing.Smoothed:
@@ -334,13 +347,30 @@ def _merged(smoothed: smoothing.Smoothed, smooth) -> smoothing.Smoothed:
     return smooth(smoothed.path, relabel(ids, labels))
 
 
+def _radius_update(log: _Log, landmark_of_obs) -> tuple[dict, int]:
+    """({"radius_noise": std} or {}, radii used): the trunk-radius std from the scatter of
+    the measured radii within each landmark of the smoothed association (T, K)
+    (``noise_fit.radius_noise_from_history``). Nothing when the log has no measured radius,
+    or when the radii of one landmark never differ (a std of 0 would make any difference
+    infinitely unlikely; 0 keeps the radius out of the filter)."""
+    radius = np.asarray(log.observations.radius, np.float64)
+    if not measured_radii(radius, log.valid).any():
+        return {}, 0
+    std, used = radius_noise_from_history(np.asarray(landmark_of_obs), radius, log.valid)
+    if not (np.isfinite(std) and std > 0.0):
+        return {}, 0
+    return {"radius_noise": float(std)}, used
+
+
 def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, iteration: int,
             calibrate_sensor: bool, smoother_iterations: int,
-            merge_landmarks: bool = False) -> _MStep | str:
+            merge_landmarks: bool = False, calibrate_radius: bool = False) -> _MStep | str:
     """Smooth the best particle's association and fit the settings (module docstring, 3-4);
     a warning instead when there is nothing to fit or the smoother failed. With
     ``merge_landmarks`` the smoothed map's split landmarks are merged and the log smoothed
-    again with the merged association before the fit (``landmark_merge``)."""
+    again with the merged association before the fit (``landmark_merge``). With
+    ``calibrate_radius`` also the trunk-radius std (``_radius_update``), kept apart: EM's
+    runs match without it (``_with_radius`` applies it after EM)."""
     ids, _ = lineage.landmark_identities(history.match, history.birth_slot)
     ids = np.where(log.valid, np.asarray(ids), -1)
     false_alarms = single_share(ids)
@@ -383,11 +413,26 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
         if false_alarms is not None:
             update["false_alarm_probability"] = float(np.clip(false_alarms, 1e-3, 0.5))
     if "association_gate" in update:
+        # The airlock's tests are on the position alone: its width keeps the 2-dof gate.
         update["airlock_sigmas"] = float(np.sqrt(update["association_gate"]))
+    radius, radius_used = (_radius_update(log, smoothed.landmark_of_obs) if calibrate_radius
+                           else ({}, 0))
     return _MStep(update, float(smoothed.cost[-1]) / max(rows, 1), motion is not None,
                   obs is not None, int(used.sum()),
                   group_relative_errors(res, used, motion is not None, obs is not None),
-                  bursts_fitted)
+                  bursts_fitted, radius or None, radius_used)
+
+
+def _with_radius(params: Params, step: _MStep, gate_fitted: bool) -> Params:
+    """``params`` with the trunk-radius std of the M-step behind them (module docstring, step
+    4) and, when the calibration fitted the gate (``gate_fitted``), that gate moved to 3
+    degrees of freedom (``detection_fit.gate_with_radius``); ``airlock_sigmas`` keeps the
+    2-dof root (the airlock tests the position alone)."""
+    params = _with_values(params, step.radius)
+    if gate_fitted:
+        gate = gate_with_radius(float(np.asarray(params.association_gate)))
+        params = _with_values(params, {"association_gate": float(gate)})
+    return params
 
 
 def _stated_errors(m_steps: list, source, steps: int) -> tuple[dict, dict, bool | None]:
@@ -534,7 +579,8 @@ def em_typical_std(info: CalibrationInfo) -> np.ndarray:
 def calibrate_params(config: FilterConfig, key, controls, observations: Observations,
                      initial_pose=None, params: Params | None = None, *,
                      motion_model: str | None = None, iterations: int = 5, tol: float = 0.05,
-                     calibrate_sensor: bool = True, smoother_iterations: int = 15,
+                     calibrate_sensor: bool = True, calibrate_radius: bool = True,
+                     smoother_iterations: int = 15,
                      merge_landmarks: bool = False, scale_search: bool = True,
                      scales=DEFAULT_SCALES, patience: int | None = 2,
                      search_workers: int | None = None,
@@ -565,6 +611,13 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         ``iterations >= patience + 2`` (the first run never counts as best).
       calibrate_sensor: also estimate max_range, miss_range, detection and false-alarm
         probabilities and the gate (else only the noise).
+      calibrate_radius: when the observations carry measured trunk radii (> 0), also
+        estimate ``radius_noise`` (module docstring, step 4) from the association behind the
+        returned settings; EM's runs match without it, the scale search's runs and the
+        user's with it, and a fitted gate becomes the 3-dof gate of
+        ``detection_fit.gate_with_radius``. A log without radii, or whose radii never differ
+        within a landmark, keeps the given ``radius_noise`` (and EM runs with it). With
+        ``calibrate_sensor=False`` the given gate is kept as it is.
       smoother_iterations: most Levenberg-Marquardt steps of each smoothing.
       merge_landmarks: in each M-step, merge the smoothed landmarks that were never observed
         at one step and lie closer than half the distance of any two that were
@@ -639,7 +692,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
             break
         step = _m_step(config, params, log, odometry,
                        _best_history(trace.lineage, final.log_weight), done, calibrate_sensor,
-                       smoother_iterations, merge_landmarks)
+                       smoother_iterations, merge_landmarks, calibrate_radius)
         if isinstance(step, str):
             warnings.append(step)
             break
@@ -674,6 +727,19 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                f"the highest log marginal likelihood of the {len(evaluated)} filter "
                f"runs{among}")
         chosen = f"; returned iteration {best + 1}'s settings ({why})"
+    radius_used = 0
+    if source is not None and source.radius:
+        behind = next(i + 1 for i, step in enumerate(m_steps) if step is source)
+        gate_fitted = any("association_gate" in step.update for step in m_steps[:behind])
+        params = _with_radius(params, source, gate_fitted)
+        values.update({name: _plain(getattr(params, name))
+                       for name in tuple(source.radius) + ("association_gate",) * gate_fitted})
+        radius_used = source.radius_used
+        chosen += (f"; trunk-radius std {_plain(params.radius_noise):.3g} m from "
+                   f"{radius_used} radii")
+        if gate_fitted:
+            chosen += f", gate {_plain(params.association_gate):.3g} at 3 dof"
+        known = None  # EM's runs matched without the radius: the search runs x1 with it
     found = None
     if scale_search and source is not None and (source.motion_fitted
                                                  or source.observation_fitted):
@@ -707,6 +773,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     if warnings:
         verdict += "; partly calibrated (see warnings)"
     relative_std, samples, bursts_fitted = _stated_errors(m_steps, source, steps)
+    if radius_used:
+        samples["radius"] = radius_used
     return params, CalibrationInfo(done, np.asarray(objective), np.asarray(costs),
                                    np.asarray(typical), values, relative_std, samples,
                                    converged, verdict, tuple(warnings), found,

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -11,7 +12,7 @@ import pytest
 from jaxslam import calibrate, lineage, smoothing
 from jaxslam import self_calibration as sc
 from jaxslam.calibration_residuals import smoothed_residuals, typical_stds
-from jaxslam.detection_fit import GATE_LIMITS, detections
+from jaxslam.detection_fit import CHI2_2DOF_999, GATE_LIMITS, detections, gate_with_radius
 from jaxslam.ekf import measurement_std
 from jaxslam.geometry import range_bearing, wrap_angle
 from jaxslam.motion import odometry_from_poses, odometry_std
@@ -491,6 +492,116 @@ def test_radius_noise_from_history_covers_the_tails(case):
     else:
         assert std > 1.1 * core  # the tails widen it, by more than the MAD's sampling noise
         assert np.mean(np.abs(deviation) <= 1.96 * std) >= 0.95
+
+
+def test_em_runs_match_without_the_fitted_radius_and_the_search_runs_with_it(monkeypatch):
+    """The radius std is kept apart during EM (module docstring, step 4): every EM filter run
+    gets the given ``radius_noise`` (0), the search receives the fitted std and the 3-dof
+    gate, and no known x1 run (EM's runs matched without the radius, so x1 runs again)."""
+    from jaxslam import filter as filter_module
+
+    seen = []
+
+    def recording_run(config, key, params, *args, **kwargs):
+        seen.append(float(params.radius_noise))
+        return filter_module.run_filter(config, key, params, *args, **kwargs)
+
+    class Handed(Exception):
+        pass
+
+    def search(config, key, params, *args, known=None, **kwargs):
+        raise Handed(float(params.radius_noise), float(params.association_gate),
+                     float(params.airlock_sigmas), known)
+
+    controls, obs, poses = _log()
+    radius, valid = np.asarray(obs.radius), np.asarray(obs.valid)
+    noise = np.random.default_rng(3).normal(0.0, 0.02, radius.shape)
+    obs = obs._replace(radius=jnp.asarray(np.where(valid & (radius > 0), radius + noise,
+                                                   radius), obs.radius.dtype))
+    monkeypatch.setattr(sc, "run_filter", recording_run)
+    monkeypatch.setattr(sc, "search_noise_scales", search)
+    with pytest.raises(Handed) as handed:
+        sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0],
+                            iterations=3)
+    radius_std, gate, airlock, known = handed.value.args
+    assert len(seen) >= 2 and seen == [0.0] * len(seen)
+    assert abs(radius_std - 0.02) < 0.003 and known is None
+    np.testing.assert_allclose(gate, gate_with_radius(airlock**2), rtol=1e-5)
+
+
+def _chi2_3dof_tail(x):
+    """P(chi2_3 > x) in closed form, float64: erfc(sqrt(x / 2)) + sqrt(2 x / pi) e^(-x / 2)."""
+    return math.erfc(math.sqrt(x / 2.0)) + math.sqrt(2.0 * x / math.pi) * math.exp(-x / 2.0)
+
+
+def _gate_with_radius_reference(gate):
+    """The 3-dof gate with the 2-dof gate's tail probability exp(-g / 2), by bisection on the
+    closed-form tail (plain Python floats, no scipy)."""
+    target, low, high = math.exp(-gate / 2.0), gate, gate + 20.0
+    for _ in range(200):
+        middle = 0.5 * (low + high)
+        low, high = (middle, high) if _chi2_3dof_tail(middle) > target else (low, middle)
+    return 0.5 * (low + high)
+
+
+def test_gate_with_radius_matches_a_closed_form_reference():
+    """The chi-square 99.9 % gates 13.82 (2 dof) -> 16.27 (3 dof), the default 25 -> 27.9,
+    and an array, against the bisection reference to 1e-9 (its bisection ends far below)."""
+    gates = np.array([CHI2_2DOF_999, 9.21, 25.0, 1.0, 60.0])
+    got = gate_with_radius(gates)
+    want = np.array([_gate_with_radius_reference(g) for g in gates])
+    assert got.shape == gates.shape
+    np.testing.assert_allclose(got, want, rtol=1e-9)
+    np.testing.assert_allclose(gate_with_radius(CHI2_2DOF_999), 16.266, atol=1e-3)
+    assert np.all(got > gates) and np.all(np.diff(gate_with_radius(np.sort(gates))) > 0)
+    for bad in (0.0, -1.0, np.nan):
+        with pytest.raises(ValueError, match="gates > 0"):
+            gate_with_radius(bad)
+
+
+@functools.lru_cache(maxsize=4)
+def _calibrated_with_radii(scatter: float, calibrate_radius: bool = True):
+    """``_log`` with Gaussian scatter of std ``scatter`` added to every measured radius
+    (0: the simulator's exact radii), calibrated (3 EM iterations, no scale search)."""
+    controls, obs, poses = _log()
+    radius, valid = np.asarray(obs.radius), np.asarray(obs.valid)
+    noise = np.random.default_rng(3).normal(0.0, scatter, radius.shape)
+    noisy = np.where(valid & (radius > 0), radius + noise, radius)
+    obs = obs._replace(radius=jnp.asarray(noisy, obs.radius.dtype))
+    return sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0],
+                               iterations=3, scale_search=False,
+                               calibrate_radius=calibrate_radius)
+
+
+def test_calibration_fits_the_trunk_radius_std_and_its_gate():
+    """Radii with 0.02 m Gaussian scatter: the fitted ``radius_noise`` is within 15 % of 0.02
+    (about 800 radii; the 95 %-coverage std's standard error is about 5 % there, so 15 % is
+    three of them), the gate is the 3-dof gate of the 2-dof one the airlock keeps, and the
+    radii used are counted."""
+    params, info = _calibrated_with_radii(0.02)
+    assert abs(float(params.radius_noise) - 0.02) < 0.003, float(params.radius_noise)
+    gate_2dof = float(params.airlock_sigmas) ** 2
+    assert GATE_LIMITS[0] - 1e-4 <= gate_2dof <= GATE_LIMITS[1] + 1e-4
+    np.testing.assert_allclose(float(params.association_gate), gate_with_radius(gate_2dof),
+                               rtol=1e-5)
+    assert info.values["radius_noise"] == pytest.approx(float(params.radius_noise))
+    assert 500 < info.samples["radius"] <= int(np.asarray(_log()[1].valid).sum())
+    assert (f"trunk-radius std {float(params.radius_noise):.3g} m from "
+            f"{info.samples['radius']} radii, gate {float(params.association_gate):.3g} at "
+            "3 dof") in info.verdict
+
+
+@pytest.mark.parametrize("scatter, calibrate_radius", [(0.0, True), (0.02, False)])
+def test_radius_std_not_fitted_from_exact_radii_or_when_switched_off(scatter,
+                                                                      calibrate_radius):
+    """Exact radii (no scatter within a tree) or ``calibrate_radius=False``: the given
+    ``radius_noise`` (0) is kept, the gate stays the 2-dof gate, nothing is counted."""
+    params, info = _calibrated_with_radii(scatter, calibrate_radius)
+    assert float(params.radius_noise) == 0.0
+    np.testing.assert_allclose(float(params.association_gate),
+                               float(params.airlock_sigmas) ** 2, rtol=1e-5)
+    assert "radius" not in info.samples and "radius_noise" not in info.values
+    assert "trunk-radius" not in info.verdict
 
 
 def test_scale_search_multiplies_the_em_result_by_the_chosen_scales():
