@@ -14,7 +14,7 @@ Pipeline (one filter step per laser scan, T = 7230 for the whole run):
   3. Settings: a named set of ``experiments/configs/victoria_park.toml`` (``load_settings``):
      "calibrated" (every field from the documentation, the library default, or estimated
      from the log by ``calibrate_victoria_park``: ``jaxslam.pipeline.filter_log`` with
-     ``calibrate=True`` on the log as a ``RobotLog``, then ``radius_noise_from_history``)
+     ``calibrate=True`` on the log as a ``RobotLog``, the trunk-radius std included)
      or "legacy" (the earlier set chosen by GPS score, in-sample).
   4. ``run_victoria_park``: one compiled ``run_filter`` call; the weighted-mean path is scored
      against GPS by ``victoria_park.gps_error`` (outliers removed by ``filter_gps``, a rigid

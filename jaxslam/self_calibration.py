@@ -82,7 +82,8 @@ for the motion groups that part is often the larger (docs/results.md, self_calib
 
 Cost: one filter run per iteration, at most ``iterations`` (4 of at most 5 on MRCLAM robot 1
 with ``patience``), plus the scale search's runs on the same compiled filter (at most 7 with the
-default grid, 6 when EM did not converge, fewer when a stage's score falls past its peak;
+default grid, 6 when EM did not converge and no radius std was fitted, fewer when a stage's
+score falls past its peak;
 on a CPU two at a time, in 1.1-1.3 runs' time: ``noise_scale.default_workers``),
 plus the smoother (0.15-0.35 of a run per iteration on MRCLAM robot 1 and on the simulated
 loop of ``benchmarks/calibration.py``), plus a few per cent for the rest. Between the filter
@@ -148,7 +149,8 @@ class CalibrationInfo(NamedTuple):
         burst fit's core std on some logs, the path and association EM converged to;
         docs/results.md, self_calibration). Empty when the starting settings are returned.
       samples: dict group -> number of samples the fit used (the M-steps behind the
-        returned settings, as ``relative_std``).
+        returned settings, as ``relative_std``); "radius": the measured radii behind a
+        fitted ``radius_noise`` (no ``relative_std`` entry: its interval is not stated).
       converged: whether the typical stds stopped moving (``tol``).
       verdict: one line in plain words.
       warnings: tuple of plain-word warnings (data too sparse, a group kept at its start).
@@ -347,17 +349,22 @@ def _merged(smoothed: smoothing.Smoothed, smooth) -> smoothing.Smoothed:
     return smooth(smoothed.path, relabel(ids, labels))
 
 
+def _log_has_radii(log: _Log) -> bool:
+    """Whether any valid observation of the log carries a measured trunk radius."""
+    return bool(measured_radii(log.observations.radius, log.valid).any())
+
+
 def _radius_update(log: _Log, landmark_of_obs) -> tuple[dict, int]:
     """({"radius_noise": std} or {}, radii used): the trunk-radius std from the scatter of
     the measured radii within each landmark of the smoothed association (T, K)
-    (``noise_fit.radius_noise_from_history``). Nothing when the log has no measured radius,
-    or when the radii of one landmark never differ (a std of 0 would make any difference
-    infinitely unlikely; 0 keeps the radius out of the filter)."""
-    radius = np.asarray(log.observations.radius, np.float64)
-    if not measured_radii(radius, log.valid).any():
-        return {}, 0
-    std, used = radius_noise_from_history(np.asarray(landmark_of_obs), radius, log.valid)
-    if not (np.isfinite(std) and std > 0.0):
+    (``noise_fit.radius_noise_from_history``, landmarks with ``MIN_SIGHTINGS`` radii or
+    more). Nothing when fewer than ``MIN_OBSERVATIONS`` radii qualify, or when the std comes
+    out 0 (95 % of the radii equal their landmark's median, as exact simulated radii do: a
+    std of 0 would make any difference infinitely unlikely)."""
+    std, used = radius_noise_from_history(np.asarray(landmark_of_obs),
+                                          np.asarray(log.observations.radius, np.float64),
+                                          log.valid, min_sightings=MIN_SIGHTINGS)
+    if used < MIN_OBSERVATIONS or not (np.isfinite(std) and std > 0.0):
         return {}, 0
     return {"radius_noise": float(std)}, used
 
@@ -423,14 +430,20 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
                   bursts_fitted, radius or None, radius_used)
 
 
-def _with_radius(params: Params, step: _MStep, gate_fitted: bool) -> Params:
-    """``params`` with the trunk-radius std of the M-step behind them (module docstring, step
-    4) and, when the calibration fitted the gate (``gate_fitted``), that gate moved to 3
-    degrees of freedom (``detection_fit.gate_with_radius``); ``airlock_sigmas`` keeps the
-    2-dof root (the airlock tests the position alone)."""
-    params = _with_values(params, step.radius)
-    if gate_fitted:
-        gate = gate_with_radius(float(np.asarray(params.association_gate)))
+def _behind(m_steps: list, source) -> int:
+    """How many M-steps lie behind the returned settings: up to and including ``source``
+    (0 when it is none of them: the starting settings were returned)."""
+    return next((i + 1 for i, step in enumerate(m_steps) if step is source), 0)
+
+
+def _with_radius(params: Params, radius: dict, gate_fitted: bool) -> Params:
+    """``params`` with the trunk-radius std ``radius`` ({"radius_noise": std} or {}: keep
+    theirs) and, when the calibration fitted the gate (``gate_fitted``) and the radius std
+    in use is > 0, that gate moved to 3 degrees of freedom (``detection_fit.gate_with_radius``);
+    ``airlock_sigmas`` keeps the 2-dof root (the airlock tests the position alone)."""
+    params = _with_values(params, radius)
+    if gate_fitted and _plain(params.radius_noise) > 0.0:
+        gate = gate_with_radius(_plain(params.association_gate))
         params = _with_values(params, {"association_gate": float(gate)})
     return params
 
@@ -441,7 +454,7 @@ def _stated_errors(m_steps: list, source, steps: int) -> tuple[dict, dict, bool 
     stated it; ``steps`` moves for the motion groups; whether that latest motion fit found
     bursts (None without a motion fit). Nothing when ``source`` is none of them (the
     starting settings were returned: no fit lies behind them)."""
-    behind = next((i + 1 for i, step in enumerate(m_steps) if step is source), 0)
+    behind = _behind(m_steps, source)
     relative_std, samples, bursts_fitted = {}, {}, None
     for step in m_steps[:behind]:
         relative_std.update(step.relative_std)
@@ -613,10 +626,13 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         probabilities and the gate (else only the noise).
       calibrate_radius: when the observations carry measured trunk radii (> 0), also
         estimate ``radius_noise`` (module docstring, step 4) from the association behind the
-        returned settings; EM's runs match without it, the scale search's runs and the
-        user's with it, and a fitted gate becomes the 3-dof gate of
-        ``detection_fit.gate_with_radius``. A log without radii, or whose radii never differ
-        within a landmark, keeps the given ``radius_noise`` (and EM runs with it). With
+        returned settings. EM's runs then match without a radius std (0), the scale
+        search's runs and the user's with the fitted one. When no std can be fitted
+        (``_radius_update``: too few radii, or radii that never differ within a landmark)
+        the given ``radius_noise`` is returned. A log without radii, or
+        ``calibrate_radius=False``, runs EM with the given ``radius_noise``. Whenever the
+        returned settings match on a radius (std > 0) and the calibration fitted the gate,
+        the gate is the 3-dof gate of ``detection_fit.gate_with_radius``; with
         ``calibrate_sensor=False`` the given gate is kept as it is.
       smoother_iterations: most Levenberg-Marquardt steps of each smoothing.
       merge_landmarks: in each M-step, merge the smoothed landmarks that were never observed
@@ -635,8 +651,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         ``noise_scale.search_noise_scales``, EM's key; only the groups EM fitted): EM on
         a poor association shrinks the noise. ``converged`` and ``relative_std`` still describe
         EM's own estimate. Costs at most 2 len(scales) - 1 more filter runs (one fewer when
-        EM did not converge: its best run is reused), fewer when a stage's score falls past
-        its peak (``noise_scale.walk_stage``).
+        EM did not converge and no radius std was fitted: its best run is reused), fewer
+        when a stage's score falls past its peak (``noise_scale.walk_stage``).
       search_workers: candidates of the scale search run at once, each in its own thread
         (the same choice for every value; ``noise_scale.walk_stage``). None:
         ``noise_scale.default_workers()``, 2 on a CPU with two or more cores, where two
@@ -675,6 +691,11 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     given_heading_std = params.association_heading_std
     odometry = np.asarray(control_to_odometry(controls, params, motion_model), np.float64)
     params = with_typical_heading_std(params, odometry, z_range)
+    # EM's runs match without a radius std that is to be fitted (module docstring, step 4).
+    given_radius = _plain(params.radius_noise)
+    fit_radius = calibrate_radius and _log_has_radii(log)
+    if fit_radius:
+        params = _with_values(params, {"radius_noise": 0.0})
     for done in range(1, iterations + 1):
         odometry = np.asarray(control_to_odometry(controls, params, motion_model), np.float64)
         typical.append(typical_stds(params, odometry, z_range))
@@ -692,7 +713,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
             break
         step = _m_step(config, params, log, odometry,
                        _best_history(trace.lineage, final.log_weight), done, calibrate_sensor,
-                       smoother_iterations, merge_landmarks, calibrate_radius)
+                       smoother_iterations, merge_landmarks, fit_radius)
         if isinstance(step, str):
             warnings.append(step)
             break
@@ -727,19 +748,23 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                f"the highest log marginal likelihood of the {len(evaluated)} filter "
                f"runs{among}")
         chosen = f"; returned iteration {best + 1}'s settings ({why})"
-    radius_used = 0
-    if source is not None and source.radius:
-        behind = next(i + 1 for i, step in enumerate(m_steps) if step is source)
-        gate_fitted = any("association_gate" in step.update for step in m_steps[:behind])
-        params = _with_radius(params, source, gate_fitted)
-        values.update({name: _plain(getattr(params, name))
-                       for name in tuple(source.radius) + ("association_gate",) * gate_fitted})
-        radius_used = source.radius_used
+    behind = _behind(m_steps, source)
+    fitted_radius = source.radius if source is not None and source.radius else {}
+    radius_used = source.radius_used if fitted_radius else 0
+    em_params = params
+    params = _with_radius(params, fitted_radius or ({"radius_noise": given_radius}
+                                                    if fit_radius else {}),
+                          any("association_gate" in step.update for step in m_steps[:behind]))
+    values.update(fitted_radius)
+    if fitted_radius:
         chosen += (f"; trunk-radius std {_plain(params.radius_noise):.3g} m from "
                    f"{radius_used} radii")
-        if gate_fitted:
-            chosen += f", gate {_plain(params.association_gate):.3g} at 3 dof"
-        known = None  # EM's runs matched without the radius: the search runs x1 with it
+    if _plain(params.association_gate) != _plain(em_params.association_gate):
+        values["association_gate"] = _plain(params.association_gate)
+        chosen += f"; gate {_plain(params.association_gate):.3g} at 3 dof with the radius"
+    if any(_plain(getattr(params, name)) != _plain(getattr(em_params, name))
+           for name in ("radius_noise", "association_gate")):
+        known = None  # EM's runs matched without this radius or gate: the search runs x1
     found = None
     if scale_search and source is not None and (source.motion_fitted
                                                  or source.observation_fitted):
@@ -752,8 +777,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                           if source.observation_fitted else ())})
         chosen += note
     elif scale_search:
-        chosen += "; no noise-scale search (nothing was fitted)"
-    behind = next((i + 1 for i, step in enumerate(m_steps) if step is source), 0)
+        chosen += "; no noise-scale search (no noise group was fitted)"
     if not any(step.motion_fitted for step in m_steps[:behind]):
         params = params._replace(association_heading_std=given_heading_std)
         values.pop("association_heading_std", None)

@@ -494,10 +494,13 @@ def test_radius_noise_from_history_covers_the_tails(case):
         assert np.mean(np.abs(deviation) <= 1.96 * std) >= 0.95
 
 
-def test_em_runs_match_without_the_fitted_radius_and_the_search_runs_with_it(monkeypatch):
+@pytest.mark.parametrize("start_radius", [0.0, 0.05])
+def test_em_runs_match_without_the_fitted_radius_and_the_search_runs_with_it(monkeypatch,
+                                                                             start_radius):
     """The radius std is kept apart during EM (module docstring, step 4): every EM filter run
-    gets the given ``radius_noise`` (0), the search receives the fitted std and the 3-dof
-    gate, and no known x1 run (EM's runs matched without the radius, so x1 runs again)."""
+    matches with ``radius_noise`` 0, also when the start gives one, the search receives the
+    fitted std and the 3-dof gate, and no known x1 run. EM is kept from converging (tol
+    1e-9), so without the radius the search would have received EM's best run as known."""
     from jaxslam import filter as filter_module
 
     seen = []
@@ -514,17 +517,15 @@ def test_em_runs_match_without_the_fitted_radius_and_the_search_runs_with_it(mon
                      float(params.airlock_sigmas), known)
 
     controls, obs, poses = _log()
-    radius, valid = np.asarray(obs.radius), np.asarray(obs.valid)
-    noise = np.random.default_rng(3).normal(0.0, 0.02, radius.shape)
-    obs = obs._replace(radius=jnp.asarray(np.where(valid & (radius > 0), radius + noise,
-                                                   radius), obs.radius.dtype))
+    obs = _scattered_radii(obs, 0.02)
     monkeypatch.setattr(sc, "run_filter", recording_run)
     monkeypatch.setattr(sc, "search_noise_scales", search)
+    start = sc.starting_params(CONFIG)._replace(radius_noise=jnp.float32(start_radius))
     with pytest.raises(Handed) as handed:
-        sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0],
-                            iterations=3)
+        sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0], start,
+                            iterations=3, tol=1e-9)
     radius_std, gate, airlock, known = handed.value.args
-    assert len(seen) >= 2 and seen == [0.0] * len(seen)
+    assert len(seen) == 3 and seen == [0.0] * 3
     assert abs(radius_std - 0.02) < 0.003 and known is None
     np.testing.assert_allclose(gate, gate_with_radius(airlock**2), rtol=1e-5)
 
@@ -554,23 +555,30 @@ def test_gate_with_radius_matches_a_closed_form_reference():
     np.testing.assert_allclose(got, want, rtol=1e-9)
     np.testing.assert_allclose(gate_with_radius(CHI2_2DOF_999), 16.266, atol=1e-3)
     assert np.all(got > gates) and np.all(np.diff(gate_with_radius(np.sort(gates))) > 0)
-    for bad in (0.0, -1.0, np.nan):
-        with pytest.raises(ValueError, match="gates > 0"):
+    for bad in (0.0, -1.0, np.nan, 2000.0):
+        with pytest.raises(ValueError, match=r"gates in \(0, 1400\]"):
             gate_with_radius(bad)
 
 
-@functools.lru_cache(maxsize=4)
-def _calibrated_with_radii(scatter: float, calibrate_radius: bool = True):
-    """``_log`` with Gaussian scatter of std ``scatter`` added to every measured radius
-    (0: the simulator's exact radii), calibrated (3 EM iterations, no scale search)."""
-    controls, obs, poses = _log()
+def _scattered_radii(obs, scatter: float):
+    """``obs`` with Gaussian scatter of std ``scatter`` (fixed draws) added to every measured
+    radius (0: the simulator's exact radii)."""
     radius, valid = np.asarray(obs.radius), np.asarray(obs.valid)
     noise = np.random.default_rng(3).normal(0.0, scatter, radius.shape)
     noisy = np.where(valid & (radius > 0), radius + noise, radius)
-    obs = obs._replace(radius=jnp.asarray(noisy, obs.radius.dtype))
-    return sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0],
-                               iterations=3, scale_search=False,
-                               calibrate_radius=calibrate_radius)
+    return obs._replace(radius=jnp.asarray(noisy, obs.radius.dtype))
+
+
+@functools.lru_cache(maxsize=4)
+def _calibrated_with_radii(scatter: float, calibrate_radius: bool = True,
+                           start_radius: float = 0.0):
+    """``_log`` with ``_scattered_radii(scatter)``, calibrated from the starting settings with
+    ``radius_noise`` = ``start_radius`` (3 EM iterations, no scale search)."""
+    controls, obs, poses = _log()
+    start = sc.starting_params(CONFIG)._replace(radius_noise=jnp.float32(start_radius))
+    return sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls,
+                               _scattered_radii(obs, scatter), poses[0], start, iterations=3,
+                               scale_search=False, calibrate_radius=calibrate_radius)
 
 
 def test_calibration_fits_the_trunk_radius_std_and_its_gate():
@@ -587,8 +595,8 @@ def test_calibration_fits_the_trunk_radius_std_and_its_gate():
     assert info.values["radius_noise"] == pytest.approx(float(params.radius_noise))
     assert 500 < info.samples["radius"] <= int(np.asarray(_log()[1].valid).sum())
     assert (f"trunk-radius std {float(params.radius_noise):.3g} m from "
-            f"{info.samples['radius']} radii, gate {float(params.association_gate):.3g} at "
-            "3 dof") in info.verdict
+            f"{info.samples['radius']} radii; gate {float(params.association_gate):.3g} at "
+            "3 dof with the radius") in info.verdict
 
 
 @pytest.mark.parametrize("scatter, calibrate_radius", [(0.0, True), (0.02, False)])
@@ -598,10 +606,26 @@ def test_radius_std_not_fitted_from_exact_radii_or_when_switched_off(scatter,
     ``radius_noise`` (0) is kept, the gate stays the 2-dof gate, nothing is counted."""
     params, info = _calibrated_with_radii(scatter, calibrate_radius)
     assert float(params.radius_noise) == 0.0
+    assert "association_gate" in info.values  # fitted, and left at 2 dof
     np.testing.assert_allclose(float(params.association_gate),
                                float(params.airlock_sigmas) ** 2, rtol=1e-5)
     assert "radius" not in info.samples and "radius_noise" not in info.values
-    assert "trunk-radius" not in info.verdict
+    assert "trunk-radius" not in info.verdict and "3 dof" not in info.verdict
+
+
+@pytest.mark.parametrize("scatter, calibrate_radius", [(0.0, True), (0.02, False)])
+def test_a_given_radius_std_is_kept_and_moves_the_fitted_gate_to_3_dof(scatter,
+                                                                       calibrate_radius):
+    """A start with ``radius_noise`` 0.05 and no std fitted (exact radii, or
+    ``calibrate_radius=False``): the 0.05 comes back, and since the returned settings match
+    on the radius, the fitted gate is the 3-dof gate of the 2-dof one the airlock keeps."""
+    params, info = _calibrated_with_radii(scatter, calibrate_radius, 0.05)
+    assert float(params.radius_noise) == pytest.approx(0.05)
+    assert "association_gate" in info.values and "radius_noise" not in info.values
+    np.testing.assert_allclose(float(params.association_gate),
+                               gate_with_radius(float(params.airlock_sigmas) ** 2), rtol=1e-5)
+    assert info.values["association_gate"] == pytest.approx(float(params.association_gate))
+    assert "3 dof with the radius" in info.verdict and "trunk-radius" not in info.verdict
 
 
 def test_scale_search_multiplies_the_em_result_by_the_chosen_scales():
