@@ -659,6 +659,27 @@ def test_scale_search_multiplies_the_em_result_by_the_chosen_scales():
                                    np.asarray(getattr(searched, name), np.float64), rtol=1e-6)
 
 
+def test_scale_search_leaves_the_radius_std_and_its_gate_alone():
+    """The search scales the motion and observation noise only: a fitted radius std and the
+    3-dof gate come out as they went in (scored with them: the runs match on the radius)."""
+    from jaxslam.noise_scale import OBSERVATION_FIELDS
+
+    params, _ = _calibrated_with_radii(0.02)
+    assert float(params.radius_noise) > 0.0
+    controls, obs, poses = _log()
+    both = sc._MStep({}, 0.0, True, True, 0, {}, False)
+    searched, found, _ = sc._scale_search(CONFIG, jax.random.PRNGKey(0), params, controls,
+                                          _scattered_radii(obs, 0.02),
+                                          jnp.asarray(poses[0], jnp.float32), (1.0, 2.0),
+                                          both, None)
+    for name in ("radius_noise", "association_gate", "airlock_sigmas"):
+        np.testing.assert_array_equal(getattr(searched, name), getattr(params, name))
+    for name in OBSERVATION_FIELDS:
+        np.testing.assert_allclose(getattr(searched, name),
+                                   found.observation_scale * np.asarray(getattr(params, name)),
+                                   rtol=1e-6)
+
+
 @pytest.mark.parametrize("bad", [(2.0, 4.0), (), (1.0, -2.0)])
 def test_bad_scales_fail_before_any_filter_run(bad, monkeypatch):
     controls, obs, poses = _log()
