@@ -335,7 +335,7 @@ class _MStep(NamedTuple):
     relative_std: dict  # group -> relative standard error of its fitted std
     bursts_fitted: bool  # the motion fit found bursts (else it kept the defensive ones)
     radius: dict | None = None  # {"radius_noise": std}, applied after EM (``_with_radius``)
-    radius_used: int = 0  # measured radii behind ``radius`` (0: not fitted)
+    radius_used: int = 0  # measured radii of landmarks with ``MIN_SIGHTINGS`` of them
 
 
 def _merged(smoothed: smoothing.Smoothed, smooth) -> smoothing.Smoothed:
@@ -355,7 +355,7 @@ def _log_has_radii(log: _Log) -> bool:
 
 
 def _radius_update(log: _Log, landmark_of_obs) -> tuple[dict, int]:
-    """({"radius_noise": std} or {}, radii used): the trunk-radius std from the scatter of
+    """({"radius_noise": std} or {}, radii that qualify): the trunk-radius std from the scatter of
     the measured radii within each landmark of the smoothed association (T, K)
     (``noise_fit.radius_noise_from_history``, landmarks with ``MIN_SIGHTINGS`` radii or
     more). Nothing when fewer than ``MIN_OBSERVATIONS`` radii qualify, or when the std comes
@@ -365,7 +365,7 @@ def _radius_update(log: _Log, landmark_of_obs) -> tuple[dict, int]:
                                           np.asarray(log.observations.radius, np.float64),
                                           log.valid, min_sightings=MIN_SIGHTINGS)
     if used < MIN_OBSERVATIONS or not (np.isfinite(std) and std > 0.0):
-        return {}, 0
+        return {}, used
     return {"radius_noise": float(std)}, used
 
 
@@ -507,8 +507,15 @@ def _stalled(objective, dropped, patience: int | None, fill_step=None) -> bool:
     return len(objective) - 1 - _best_run(objective, dropped, fill_step) >= patience
 
 
-def _fit_warnings(last: _MStep | None, steps: int) -> list[str]:
+def _fit_warnings(last: _MStep | None, steps: int, fit_radius: bool = False,
+                  radius_kept: float = 0.0) -> list[str]:
     out = []
+    if fit_radius and last is not None and not last.radius and (
+            last.radius_used < MIN_OBSERVATIONS):
+        out.append(f"the log carries trunk radii, but only {last.radius_used} belong to "
+                   f"landmarks with {MIN_SIGHTINGS} or more of them (need "
+                   f"{MIN_OBSERVATIONS}) to fit the radius std: kept the given "
+                   f"radius_noise ({radius_kept:g} m)")
     if last is None or not last.motion_fitted:
         out.append(f"too few moves ({steps}; need {MIN_MOVES}) to fit the motion noise: "
                    "kept the given motion noise")
@@ -628,8 +635,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         estimate ``radius_noise`` (module docstring, step 4) from the association behind the
         returned settings. EM's runs then match without a radius std (0), the scale
         search's runs and the user's with the fitted one. When no std can be fitted
-        (``_radius_update``: too few radii, or radii that never differ within a landmark)
-        the given ``radius_noise`` is returned. A log without radii, or
+        (``_radius_update``: too few radii, with a warning, or radii that never differ
+        within a landmark) the given ``radius_noise`` is returned. A log without radii, or
         ``calibrate_radius=False``, runs EM with the given ``radius_noise``. Whenever the
         returned settings match on a radius (std > 0) and the calibration fitted the gate,
         the gate is the 3-dof gate of ``detection_fit.gate_with_radius``; with
@@ -782,7 +789,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         params = params._replace(association_heading_std=given_heading_std)
         values.pop("association_heading_std", None)
     typical.append(typical_stds(params, odometry, z_range))
-    warnings += _fit_warnings(last, steps)
+    warnings += _fit_warnings(last, steps, fit_radius, given_radius)
     if converged:
         verdict = "converged"
     elif stalled:

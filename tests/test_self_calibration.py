@@ -659,6 +659,24 @@ def test_scale_search_multiplies_the_em_result_by_the_chosen_scales():
                                    np.asarray(getattr(searched, name), np.float64), rtol=1e-6)
 
 
+def test_too_few_radii_keep_the_given_std_and_say_so():
+    """Only the first 12 valid observations carry a radius (fewer than the 20 a fit needs):
+    the given ``radius_noise`` comes back, nothing is counted, and one warning says why."""
+    controls, obs, poses = _log()
+    radius, valid = np.asarray(_scattered_radii(obs, 0.02).radius), np.asarray(obs.valid)
+    first = np.cumsum(valid.ravel()).reshape(valid.shape) <= 12
+    obs = obs._replace(radius=jnp.asarray(np.where(valid & first, radius, 0.0),
+                                          obs.radius.dtype))
+    start = sc.starting_params(CONFIG)._replace(radius_noise=jnp.float32(0.03))
+    params, info = sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs,
+                                       poses[0], start, iterations=2, scale_search=False)
+    assert float(params.radius_noise) == pytest.approx(0.03)
+    assert "radius" not in info.samples and "radius_noise" not in info.values
+    said = [w for w in info.warnings if "trunk radii" in w]
+    assert len(said) == 1 and "need 20" in said[0] and "(0.03 m)" in said[0], info.warnings
+    assert "partly calibrated" in info.verdict
+
+
 def test_scale_search_leaves_the_radius_std_and_its_gate_alone():
     """The search scales the motion and observation noise only: a fitted radius std and the
     3-dof gate come out as they went in (scored with them: the runs match on the radius)."""
