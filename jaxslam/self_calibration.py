@@ -452,7 +452,8 @@ def _stated_errors(m_steps: list, source, steps: int) -> tuple[dict, dict, bool 
     """(relative_std, samples, bursts_fitted) of ``CalibrationInfo``: each group as its
     latest fit among the M-steps up to ``source`` (the one behind the returned settings)
     stated it; ``steps`` moves for the motion groups; whether that latest motion fit found
-    bursts (None without a motion fit). Nothing when ``source`` is none of them (the
+    bursts (None without a motion fit); samples["radius"]: the radii behind ``source``'s
+    radius std, when it fitted one. Nothing when ``source`` is none of them (the
     starting settings were returned: no fit lies behind them)."""
     behind = _behind(m_steps, source)
     relative_std, samples, bursts_fitted = {}, {}, None
@@ -463,6 +464,8 @@ def _stated_errors(m_steps: list, source, steps: int) -> tuple[dict, dict, bool 
             bursts_fitted = step.bursts_fitted
         if step.observation_fitted:
             samples["range"] = samples["bearing"] = step.used
+    if behind and m_steps[behind - 1].radius:  # a radius std is taken from ``source`` only
+        samples["radius"] = m_steps[behind - 1].radius_used
     return relative_std, samples, bursts_fitted
 
 
@@ -510,8 +513,7 @@ def _stalled(objective, dropped, patience: int | None, fill_step=None) -> bool:
 def _fit_warnings(last: _MStep | None, steps: int, fit_radius: bool = False,
                   radius_kept: float = 0.0) -> list[str]:
     out = []
-    if fit_radius and last is not None and not last.radius and (
-            last.radius_used < MIN_OBSERVATIONS):
+    if fit_radius and last is not None and last.radius_used < MIN_OBSERVATIONS:
         out.append(f"the log carries trunk radii, but only {last.radius_used} belong to "
                    f"landmarks with {MIN_SIGHTINGS} or more of them (need "
                    f"{MIN_OBSERVATIONS}) to fit the radius std: kept the given "
@@ -756,16 +758,15 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                f"runs{among}")
         chosen = f"; returned iteration {best + 1}'s settings ({why})"
     behind = _behind(m_steps, source)
-    fitted_radius = source.radius if source is not None and source.radius else {}
-    radius_used = source.radius_used if fitted_radius else 0
+    fitted_radius = (source.radius if source is not None else None) or {}
     em_params = params
-    params = _with_radius(params, fitted_radius or ({"radius_noise": given_radius}
-                                                    if fit_radius else {}),
+    # Without a fit the given std comes back (EM's runs matched with 0 when one was to be fitted).
+    params = _with_radius(params, fitted_radius or {"radius_noise": given_radius},
                           any("association_gate" in step.update for step in m_steps[:behind]))
     values.update(fitted_radius)
     if fitted_radius:
         chosen += (f"; trunk-radius std {_plain(params.radius_noise):.3g} m from "
-                   f"{radius_used} radii")
+                   f"{source.radius_used} radii")
     if _plain(params.association_gate) != _plain(em_params.association_gate):
         values["association_gate"] = _plain(params.association_gate)
         chosen += f"; gate {_plain(params.association_gate):.3g} at 3 dof with the radius"
@@ -804,8 +805,6 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     if warnings:
         verdict += "; partly calibrated (see warnings)"
     relative_std, samples, bursts_fitted = _stated_errors(m_steps, source, steps)
-    if radius_used:
-        samples["radius"] = radius_used
     return params, CalibrationInfo(done, np.asarray(objective), np.asarray(costs),
                                    np.asarray(typical), values, relative_std, samples,
                                    converged, verdict, tuple(warnings), found,
