@@ -167,7 +167,9 @@ def calibration_lines(calibration) -> list[str]:
              f"{calibration['iterations']} EM iterations, {calibration['verdict']}.", "",
              "| field | calibrated value |", "|---|---|"]
     lines += [f"| {name} | {_fmt(value)} |" for name, value in values.items()]
-    lines += [f"| radius_noise (from {calibration['radius_samples']} observations) | "
+    spread = 1.96 * calibration.get("radius_relative_std", float("nan"))
+    lines += [f"| radius_noise (from {calibration['radius_samples']} observations; 95 % "
+              f"interval +- {100 * spread:.2g} %, bootstrap over landmarks) | "
               f"{calibration['radius_noise']:.4g} |",
               f"| filter_log's own run (its key): online RMSE [m] / trees "
               f"| {calibration['online_rmse']:.2f} / {calibration['num_trees']} |", ""]
@@ -284,6 +286,7 @@ def main():
             values={name: np.asarray(getattr(params, name)).tolist()
                     for name in settings.calibrated if name != "radius_noise"},
             radius_noise=calibration.radius_noise, radius_samples=calibration.radius_samples,
+            radius_relative_std=float(info.relative_std.get("radius", float("nan"))),
             online_rmse=online.rmse, num_trees=calibration.num_trees,
             objective=np.asarray(info.objective).tolist(),
             dropped_births=np.asarray(info.dropped_births).tolist())

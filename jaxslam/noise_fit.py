@@ -360,6 +360,43 @@ def radius_noise_from_history(ids, radius, valid, min_sightings: int = 3,
     into a new landmark. For Gaussian scatter the two agree up to sampling noise. Returns
     (std, observations used); (nan, 0) when no landmark was seen often enough.
     """
+    deviations = _radius_deviations(ids, radius, valid, min_sightings, quantile)
+    if not deviations:
+        return float("nan"), 0
+    pooled = np.concatenate(deviations)
+    return _radius_std(pooled, quantile), int(pooled.size)
+
+
+def radius_noise_relative_error(ids, radius, valid, min_sightings: int = 3,
+                                quantile: float = TAIL_QUANTILE, replicates: int = 400,
+                                seed: int = 0) -> float:
+    """Relative standard error of ``radius_noise_from_history``'s std (same arguments), by a
+    bootstrap over landmarks.
+
+    The deviations of one tree share its median and its trunk's shape, so they are not
+    independent samples; the landmarks are. Each of ``replicates`` replicates draws L of the
+    L qualifying landmarks with replacement (``numpy.random.default_rng(seed)``: the same
+    inputs give the same figure), pools their deviations (each tree's own, from its own
+    median) and recomputes the std; the result is the replicates' standard deviation over the
+    std of the data (Efron and Tibshirani, "An Introduction to the Bootstrap", 1993, ch. 6
+    and 8.5 on resampling whole groups). As with ``std_relative_error`` it is the sampling
+    error only: a landmark that merges two trees or splits one is not in it. inf when fewer
+    than 2 landmarks qualify or the std is 0; nan inputs as ``radius_noise_from_history``.
+    """
+    deviations = _radius_deviations(ids, radius, valid, min_sightings, quantile)
+    std = _radius_std(np.concatenate(deviations), quantile) if deviations else 0.0
+    if len(deviations) < 2 or not std > 0.0:
+        return float("inf")
+    rng = np.random.default_rng(seed)
+    draws = rng.integers(0, len(deviations), size=(replicates, len(deviations)))
+    stds = np.array([_radius_std(np.concatenate([deviations[j] for j in row]), quantile)
+                     for row in draws])
+    return float(np.std(stds, ddof=1) / std)
+
+
+def _radius_deviations(ids, radius, valid, min_sightings: int, quantile: float) -> list:
+    """Per qualifying landmark (``min_sightings`` measured radii or more), its radii's
+    deviations (n_j,) from its own median; [] when none qualifies."""
     if quantile not in CHI2_1DOF:
         raise ValueError(f"quantile must be one of {sorted(CHI2_1DOF)}; got {quantile!r}")
     ids = np.where(measured_radii(radius, valid), np.asarray(ids), -1).ravel()
@@ -367,15 +404,16 @@ def radius_noise_from_history(ids, radius, valid, min_sightings: int = 3,
     keep = ids >= 0
     ids, radius = ids[keep], radius[keep]
     if ids.size == 0:
-        return float("nan"), 0
-    labels, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
-    often = counts[inverse] >= min_sightings
-    if not often.any():
-        return float("nan"), 0
-    medians = np.array([np.median(radius[inverse == j]) if counts[j] >= min_sightings
-                        else np.nan for j in range(labels.size)])
-    deviation = radius[often] - medians[inverse[often]]
-    size = np.abs(deviation)
-    core = calibrate.MAD_TO_STD * np.median(size)
+        return []
+    order = np.argsort(ids, kind="stable")
+    _, first, counts = np.unique(ids[order], return_index=True, return_counts=True)
+    groups = np.split(radius[order], first[1:])
+    return [group - np.median(group) for group, count in zip(groups, counts)
+            if count >= min_sightings]
+
+
+def _radius_std(deviation, quantile: float) -> float:
+    """max(core, tail) std of pooled radius deviations (``radius_noise_from_history``)."""
+    core = calibrate.MAD_TO_STD * np.median(np.abs(deviation))
     tail = np.sqrt(np.quantile(deviation**2, quantile) / CHI2_1DOF[quantile])  # tail_factor's
-    return float(max(core, tail)), int(often.sum())
+    return float(max(core, tail))

@@ -78,7 +78,10 @@ the chi-square figure 1 / sqrt(2 n) of n independent Gaussian samples). It is th
 error of those residuals only: a bias of EM's estimate (for the motion groups: the burst
 fit's core std on some logs, the path and association EM converged to) is not in it, and
 for the motion groups that part is often the larger (docs/results.md, self_calibration,
-"Do the stated intervals hold the truth?").
+"Do the stated intervals hold the truth?"). A fitted trunk-radius std gets its error from a
+bootstrap over the landmarks whose radii it used (``noise_fit.radius_noise_relative_error``):
+one tree's radii share its median and its shape, so the trees, not the radii, are the
+independent samples.
 
 Cost: one filter run per iteration, at most ``iterations`` (4 of at most 5 on MRCLAM robot 1
 with ``patience``), plus the scale search's runs on the same compiled filter (at most 7 with the
@@ -113,7 +116,8 @@ from jaxslam.noise_scale import (DEFAULT_SCALES, MOTION_FIELDS, OBSERVATION_FIEL
                                  latest_fill, score_trace, search_noise_scales)
 from jaxslam.noise_fit import (MIN_MOVES, MIN_OBSERVATIONS, MIN_SIGHTINGS, STD_FLOOR,
                                group_relative_errors, measured_radii, motion_noise_update,
-                               observation_noise_update, radius_noise_from_history)
+                               observation_noise_update, radius_noise_from_history,
+                               radius_noise_relative_error)
 from jaxslam.types import FilterConfig, Observations, Params, default_params
 
 START_DETECTION = 0.1  # the first iteration's detection probability (``starting_params``)
@@ -147,10 +151,13 @@ class CalibrationInfo(NamedTuple):
         of 64 for the motion groups (33 of 64 with the chi-square figure alone): EM's motion
         estimate can sit below the truth, which no spread of the residuals shows (the
         burst fit's core std on some logs, the path and association EM converged to;
-        docs/results.md, self_calibration). Empty when the starting settings are returned.
+        docs/results.md, self_calibration). "radius": a fitted ``radius_noise``'s relative
+        error, by a bootstrap over the landmarks whose radii it used
+        (``noise_fit.radius_noise_relative_error``; inf with a single such landmark). Empty
+        when the starting settings are returned.
       samples: dict group -> number of samples the fit used (the M-steps behind the
         returned settings, as ``relative_std``); "radius": the measured radii behind a
-        fitted ``radius_noise`` (no ``relative_std`` entry: its interval is not stated).
+        fitted ``radius_noise``.
       converged: whether the typical stds stopped moving (``tol``).
       verdict: one line in plain words.
       warnings: tuple of plain-word warnings (data too sparse, a group kept at its start).
@@ -336,6 +343,7 @@ class _MStep(NamedTuple):
     bursts_fitted: bool  # the motion fit found bursts (else it kept the defensive ones)
     radius: dict | None = None  # {"radius_noise": std}, applied after EM (``_with_radius``)
     radius_used: int = 0  # measured radii of landmarks with ``MIN_SIGHTINGS`` of them
+    radius_relative_std: float = float("inf")  # ``noise_fit.radius_noise_relative_error``
 
 
 def _merged(smoothed: smoothing.Smoothed, smooth) -> smoothing.Smoothed:
@@ -354,19 +362,22 @@ def _log_has_radii(log: _Log) -> bool:
     return bool(measured_radii(log.observations.radius, log.valid).any())
 
 
-def _radius_update(log: _Log, landmark_of_obs) -> tuple[dict, int]:
-    """({"radius_noise": std} or {}, radii that qualify): the trunk-radius std from the scatter of
-    the measured radii within each landmark of the smoothed association (T, K)
-    (``noise_fit.radius_noise_from_history``, landmarks with ``MIN_SIGHTINGS`` radii or
-    more). Nothing when fewer than ``MIN_OBSERVATIONS`` radii qualify, or when the std comes
-    out 0 (95 % of the radii equal their landmark's median, as exact simulated radii do: a
-    std of 0 would make any difference infinitely unlikely)."""
-    std, used = radius_noise_from_history(np.asarray(landmark_of_obs),
-                                          np.asarray(log.observations.radius, np.float64),
-                                          log.valid, min_sightings=MIN_SIGHTINGS)
+def _radius_update(log: _Log, landmark_of_obs) -> tuple[dict, int, float]:
+    """({"radius_noise": std} or {}, radii that qualify, relative standard error of the std):
+    the trunk-radius std from the scatter of the measured radii within each landmark of the
+    smoothed association (T, K) (``noise_fit.radius_noise_from_history``, landmarks with
+    ``MIN_SIGHTINGS`` radii or more), and its error by a bootstrap over those landmarks
+    (``noise_fit.radius_noise_relative_error``). Nothing (and an error of inf) when fewer
+    than ``MIN_OBSERVATIONS`` radii qualify, or when the std comes out 0 (95 % of the radii
+    equal their landmark's median, as exact simulated radii do: a std of 0 would make any
+    difference infinitely unlikely)."""
+    history = (np.asarray(landmark_of_obs), np.asarray(log.observations.radius, np.float64),
+               log.valid)
+    std, used = radius_noise_from_history(*history, min_sightings=MIN_SIGHTINGS)
     if used < MIN_OBSERVATIONS or not (np.isfinite(std) and std > 0.0):
-        return {}, used
-    return {"radius_noise": float(std)}, used
+        return {}, used, float("inf")
+    return ({"radius_noise": float(std)}, used,
+            radius_noise_relative_error(*history, min_sightings=MIN_SIGHTINGS))
 
 
 def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, iteration: int,
@@ -422,12 +433,12 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
     if "association_gate" in update:
         # The airlock's tests are on the position alone: its width keeps the 2-dof gate.
         update["airlock_sigmas"] = float(np.sqrt(update["association_gate"]))
-    radius, radius_used = (_radius_update(log, smoothed.landmark_of_obs) if calibrate_radius
-                           else ({}, 0))
+    radius, radius_used, radius_error = (_radius_update(log, smoothed.landmark_of_obs)
+                                         if calibrate_radius else ({}, 0, float("inf")))
     return _MStep(update, float(smoothed.cost[-1]) / max(rows, 1), motion is not None,
                   obs is not None, int(used.sum()),
                   group_relative_errors(res, used, motion is not None, obs is not None),
-                  bursts_fitted, radius or None, radius_used)
+                  bursts_fitted, radius or None, radius_used, radius_error)
 
 
 def _behind(m_steps: list, source) -> int:
@@ -466,6 +477,7 @@ def _stated_errors(m_steps: list, source, steps: int) -> tuple[dict, dict, bool 
             samples["range"] = samples["bearing"] = step.used
     if behind and m_steps[behind - 1].radius:  # a radius std is taken from ``source`` only
         samples["radius"] = m_steps[behind - 1].radius_used
+        relative_std["radius"] = m_steps[behind - 1].radius_relative_std
     return relative_std, samples, bursts_fitted
 
 
@@ -765,7 +777,10 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                           any("association_gate" in step.update for step in m_steps[:behind]))
     values.update(fitted_radius)
     if fitted_radius:
-        chosen += (f"; trunk-radius std {_plain(params.radius_noise):.3g} m from "
+        error = source.radius_relative_std
+        spread = (f"+- {196 * error:.2g} % " if np.isfinite(error)
+                  else "(no interval: one landmark's radii) ")
+        chosen += (f"; trunk-radius std {_plain(params.radius_noise):.3g} m {spread}from "
                    f"{source.radius_used} radii")
     if _plain(params.association_gate) != _plain(em_params.association_gate):
         values["association_gate"] = _plain(params.association_gate)

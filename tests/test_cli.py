@@ -533,6 +533,26 @@ def test_calibration_print_divides_the_search_scale_out(capsys):
     assert lines["range"][1:] == ["0.05", "m", "+-", "0.2", "%"]
 
 
+def test_calibration_print_gives_the_radius_std_with_its_interval(capsys):
+    """A fitted trunk-radius std is printed with its bootstrap interval and the radii behind
+    it; without a fit (no "radius" in ``relative_std``) there is no such line."""
+    import types
+
+    from jaxslam.cli.logs import _print_calibration
+
+    info = types.SimpleNamespace(
+        verdict="converged", iterations=2, values={"radius_noise": 0.0503},
+        samples={"radius": 2990}, typical_std=np.array([[0.02, 0.1, 0.05, 0.01]] * 2),
+        noise_scales=None, relative_std={"range": 0.001, "radius": 0.05})
+    _print_calibration(info)
+    out = capsys.readouterr().out
+    assert ("    radius       0.0503 m +- 9.8 %  (bootstrap over the landmarks of 2990 radii)"
+            in out.splitlines())
+    info.relative_std = {"range": 0.001}
+    _print_calibration(info)
+    assert "bootstrap" not in capsys.readouterr().out
+
+
 def test_em_patience_option_reaches_the_calibration():
     """``--em-patience N`` is calibrate_params' patience, 0 is None (no early stop);
     ``--search-workers N`` its search_workers (absent: None, the default); a negative

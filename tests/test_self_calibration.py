@@ -17,7 +17,8 @@ from jaxslam.ekf import measurement_std
 from jaxslam.geometry import range_bearing, wrap_angle
 from jaxslam.motion import odometry_from_poses, odometry_std
 from jaxslam.noise_fit import (host_motion_fit, host_observation_fit,
-                               radius_noise_from_history, rescale)
+                               radius_noise_from_history,
+                               radius_noise_relative_error, rescale)
 from jaxslam.types import FilterConfig, default_params, make_observations
 from sims.forest import random_forest
 from sims.paths import loop_path
@@ -494,6 +495,73 @@ def test_radius_noise_from_history_covers_the_tails(case):
         assert np.mean(np.abs(deviation) <= 1.96 * std) >= 0.95
 
 
+def _synthetic_radii(rng, kind: str, trees: int = 60, scatter: float = 0.02):
+    """One history of radii (1, N): ``trees`` trees of 0.1-0.4 m, 3-12 sightings each, with
+    scatter ``kind``: "gauss" (std ``scatter``), "t3" (Student's t, 3 dof, scaled to that
+    std) or "hetero" (Gaussian, each tree's std ``scatter`` times a lognormal(0, 0.5) factor:
+    trees differ, so one tree's deviations are alike)."""
+    counts = rng.integers(3, 13, trees)
+    ids = np.repeat(np.arange(trees), counts)
+    base = rng.uniform(0.1, 0.4, trees)[ids]
+    if kind == "gauss":
+        error = rng.normal(0.0, scatter, ids.size)
+    elif kind == "t3":
+        error = scatter * rng.standard_t(3, ids.size) / np.sqrt(3.0)
+    else:
+        error = rng.normal(0.0, 1.0, ids.size) * scatter * rng.lognormal(0.0, 0.5, trees)[ids]
+    return ids[None], (base + error)[None], np.ones((1, ids.size), bool)
+
+
+@pytest.mark.parametrize("kind", ["gauss", "t3", "hetero"])
+def test_radius_std_relative_error_matches_its_spread_over_logs(kind):
+    """The bootstrap over landmarks states the radius std's sampling error: over 300 logs
+    (fixed seed) the mean stated relative error is within 0.8-1.25x of the estimates' own
+    relative spread. Measured at 0.98-1.03x for all three kinds; the spread of 300 estimates
+    is itself uncertain by about 1 / sqrt(600) = 4 %, so the band is about five of those. On
+    the "hetero" logs, where one tree's deviations are alike, the independent-sample figure
+    1 / sqrt(2 n) states less than half the spread: a check that ignores the trees would
+    fail there. 200 bootstrap replicates a log (the library's default is 400)."""
+    rng = np.random.default_rng(5)
+    estimates, stated, counts = [], [], []
+    for _ in range(300):
+        history = _synthetic_radii(rng, kind)
+        std, used = radius_noise_from_history(*history)
+        estimates.append(std)
+        counts.append(used)
+        stated.append(radius_noise_relative_error(*history, replicates=200))
+    estimates = np.asarray(estimates)
+    spread = np.std(estimates, ddof=1) / np.mean(estimates)
+    assert 0.8 < np.mean(stated) / spread < 1.25, (np.mean(stated), spread)
+    if kind == "hetero":
+        assert np.mean(1.0 / np.sqrt(2.0 * np.asarray(counts))) < 0.5 * spread
+
+
+def test_radius_std_relative_error_edges():
+    """Same inputs, same figure (fixed seed); another seed, nearly the same (within 20 %:
+    400 replicates give the figure to about 4 %); unmeasured radii and landmarks seen fewer
+    than 3 times are left out as in the fit; a single landmark, a std of 0 or no landmark at
+    all: inf (no interval); a bad quantile is refused."""
+    history = _synthetic_radii(np.random.default_rng(7), "gauss")
+    first = radius_noise_relative_error(*history)
+    assert first == radius_noise_relative_error(*history)
+    assert 0.0 < first < 0.2
+    assert abs(radius_noise_relative_error(*history, seed=1) / first - 1.0) < 0.2
+    ids, radius, valid = history
+    extra_ids = np.array([[0, 1, 2, 98, 99, 99]])
+    extra_radius = np.array([[np.nan, 0.0, -1.0, 0.3, 0.2, 0.25]])
+    padded = (np.concatenate([ids, extra_ids], axis=1),
+              np.concatenate([radius, extra_radius], axis=1),
+              np.ones((1, ids.shape[1] + 6), bool))
+    assert radius_noise_relative_error(*padded) == first
+    one_tree = ids == ids[0, 0]
+    assert radius_noise_relative_error(ids, radius, valid & one_tree) == np.inf
+    assert radius_noise_relative_error(ids, np.full(radius.shape, 0.2), valid) == np.inf
+    assert radius_noise_relative_error(-np.ones((2, 3), int), np.ones((2, 3)),
+                                       np.ones((2, 3), bool)) == np.inf
+    with pytest.raises(ValueError, match="quantile must be one of"):
+        radius_noise_relative_error(*history, quantile=0.9)
+
+
 @pytest.mark.parametrize("start_radius", [0.0, 0.05])
 def test_em_runs_match_without_the_fitted_radius_and_the_search_runs_with_it(monkeypatch,
                                                                              start_radius):
@@ -594,7 +662,9 @@ def test_calibration_fits_the_trunk_radius_std_and_its_gate():
                                rtol=1e-5)
     assert info.values["radius_noise"] == pytest.approx(float(params.radius_noise))
     assert 500 < info.samples["radius"] <= int(np.asarray(_log()[1].valid).sum())
-    assert (f"trunk-radius std {float(params.radius_noise):.3g} m from "
+    assert 0.0 < info.relative_std["radius"] < 0.15  # about 5 % at 800 radii (above)
+    assert (f"trunk-radius std {float(params.radius_noise):.3g} m "
+            f"+- {196 * info.relative_std['radius']:.2g} % from "
             f"{info.samples['radius']} radii; gate {float(params.association_gate):.3g} at "
             "3 dof with the radius") in info.verdict
 
@@ -610,6 +680,7 @@ def test_radius_std_not_fitted_from_exact_radii_or_when_switched_off(scatter,
     np.testing.assert_allclose(float(params.association_gate),
                                float(params.airlock_sigmas) ** 2, rtol=1e-5)
     assert "radius" not in info.samples and "radius_noise" not in info.values
+    assert "radius" not in info.relative_std
     assert "trunk-radius" not in info.verdict and "3 dof" not in info.verdict
 
 
@@ -672,6 +743,7 @@ def test_too_few_radii_keep_the_given_std_and_say_so():
                                        poses[0], start, iterations=2, scale_search=False)
     assert float(params.radius_noise) == pytest.approx(0.03)
     assert "radius" not in info.samples and "radius_noise" not in info.values
+    assert "radius" not in info.relative_std
     said = [w for w in info.warnings if "trunk radii" in w]
     assert len(said) == 1 and "need 20" in said[0] and "(0.03 m)" in said[0], info.warnings
     assert "partly calibrated" in info.verdict

@@ -103,6 +103,10 @@ def _print_calibration(info) -> None:
             line += (f"  (x{scales[group]:g} by the likelihood's search: "
                      f"{info.typical_std[-1, group]:.4g} {unit} used)")
         print(line)
+    if "radius" in info.relative_std and "radius_noise" in info.values:
+        print(f"    {'radius':<12} {info.values['radius_noise']:.4g} m +- "
+              f"{_percent(196 * info.relative_std['radius'])} %  (bootstrap over the "
+              f"landmarks of {info.samples.get('radius', 0)} radii)")
 
 
 def _print_warnings(lines) -> None:
