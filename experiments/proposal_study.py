@@ -132,10 +132,12 @@ def make_logs(key, params, wobble: float, runs: int, forests: int):
             np.asarray(seen))
 
 
-def run_point(config, params, key, controls, obs, truth, chunk: int):
+def run_point(config, params, key, controls, obs, truth, chunk: int, run_ids=None):
     """Final errors (R,), landmark counts (R,), final position NEES (R,), the first-step floor
     and the error with it removed (R,) each (``first_step_errors``), compile [s] and run [s]
-    of the vmapped filter."""
+    of the vmapped filter. Run r's key is ``split(key, R)[r]``; with ``run_ids`` (R,) the logs
+    are a subset of a larger set and log i takes that set's key ``split(key, max)[run_ids[i]]``
+    (``select_runs``: a subset runs with the keys it has in the whole study)."""
     filt = make_filter(config)
 
     def one(key, controls, obs, start, end):
@@ -148,7 +150,8 @@ def run_point(config, params, key, controls, obs, truth, chunk: int):
 
     batched = jax.jit(jax.vmap(one))
     runs = controls.shape[0]
-    keys = jax.random.split(key, runs)
+    keys = (jax.random.split(key, runs) if run_ids is None
+            else jax.random.split(key, int(np.max(run_ids)) + 1)[np.asarray(run_ids)])
     tick = time.perf_counter()
     sl = slice(0, chunk)
     compiled = batched.lower(keys[sl], controls[sl], jax.tree.map(lambda a: a[sl], obs),
@@ -172,6 +175,21 @@ def run_point(config, params, key, controls, obs, truth, chunk: int):
     floor, removed = first_step_errors(np.concatenate(firsts), final, truth)
     return (error, np.concatenate(counts), np.concatenate(nees), floor, removed, compile_s,
             run_s)
+
+
+def select_runs(runs: int, forests: int, only_forests=None, per_forest=None) -> np.ndarray:
+    """Ids (R',) of the logs of ``only_forests`` (default all), the first ``per_forest`` of
+    each (default all ``runs // forests``), in ``make_logs``' order (forest f holds runs
+    f * runs / forests onward)."""
+    each = runs // forests
+    chosen = range(forests) if only_forests is None else only_forests
+    bad = [f for f in chosen if not 0 <= f < forests]
+    if bad:
+        raise ValueError(f"--only-forests {bad}: the study has forests 0..{forests - 1}")
+    first = each if per_forest is None else per_forest
+    if not 1 <= first <= each:
+        raise ValueError(f"--per-forest {first}: each forest has {each} logs; expected 1..{each}")
+    return np.concatenate([np.arange(f * each, f * each + first) for f in chosen])
 
 
 def longest_sparse_stretch(valid, most: int = 2):
@@ -229,9 +247,24 @@ def main(argv=None):
     parser.add_argument("--out", default=None, help="markdown file for the table")
     parser.add_argument("--errors", default=None,
                         help=".npz file for the per-run final errors of every row")
+    parser.add_argument("--only-forests", type=int, nargs="+", default=None,
+                        help="run only these forests' logs (0-based), with the keys they have "
+                             "in the whole study")
+    parser.add_argument("--per-forest", type=int, default=None,
+                        help="run only the first N logs of each forest")
     args = parser.parse_args(argv)
-    if args.runs % args.forests or args.runs % min(args.chunk, args.runs):
-        raise SystemExit("--runs must be a multiple of --forests and of --chunk")
+    if args.runs % args.forests:
+        raise SystemExit("--runs must be a multiple of --forests")
+    try:
+        run_ids = select_runs(args.runs, args.forests, args.only_forests, args.per_forest)
+    except ValueError as error:
+        raise SystemExit(str(error))
+    subset = run_ids.size < args.runs
+    forests = len(args.only_forests) if args.only_forests is not None else args.forests
+    runs = run_ids.size
+    if runs % min(args.chunk, runs):
+        raise SystemExit(f"--chunk must divide the {runs} logs run (--runs, or the "
+                         f"--only-forests / --per-forest subset)")
     rows, per_run = [], {}
     for wobble, odometry in itertools.product(args.wobble, args.odometry):
         truth_params = regime_params(odometry, "lidar")
@@ -239,8 +272,11 @@ def main(argv=None):
         tick = time.perf_counter()
         controls, obs, truth, seen = make_logs(key_logs, truth_params, wobble, args.runs,
                                                args.forests)
+        if subset:
+            controls, truth, seen = controls[run_ids], truth[run_ids], seen[run_ids]
+            obs = jax.tree.map(lambda a: a[run_ids], obs)
         per_run[f"{wobble:g}/{odometry:g}/sparsest"] = longest_sparse_stretch(obs.valid)
-        print(f"wobble {wobble} m, odometry {odometry}x: {args.runs} logs in "
+        print(f"wobble {wobble} m, odometry {odometry}x: {runs} logs in "
               f"{time.perf_counter() - tick:.0f} s", flush=True)
         for particles, name in itertools.product(args.particles, args.proposals):
             fields, param_fields = proposal_settings(name)
@@ -250,14 +286,16 @@ def main(argv=None):
                                               for k, v in param_fields.items()})
             error, count, nees, floor, removed, compile_s, run_s = run_point(
                 config, params, key_filters, controls, obs, truth,
-                min(args.chunk, args.runs))
+                min(args.chunk, runs), run_ids if subset else None)
             diverged = int(np.sum(error > 1.0))
-            low, high = wilson(diverged, args.runs)
-            forest_low, forest_high = clustered_interval(error > 1.0, args.forests)
-            rate = args.runs * controls.shape[1] / run_s
-            row = (f"| {wobble:g} | {odometry:g} | {particles} | {name} | {args.runs} | "
-                   f"{100 * diverged / args.runs:.1f} % [{100 * low:.1f}, {100 * high:.1f}] | "
-                   f"[{100 * forest_low:.1f}, {100 * forest_high:.1f}] | "
+            low, high = wilson(diverged, runs)
+            forest_text = ("n/a (one forest)" if forests < 2 else
+                           "[{:.1f}, {:.1f}]".format(*(100 * np.asarray(
+                               clustered_interval(error > 1.0, forests)))))
+            rate = runs * controls.shape[1] / run_s
+            row = (f"| {wobble:g} | {odometry:g} | {particles} | {name} | {runs} | "
+                   f"{100 * diverged / runs:.1f} % [{100 * low:.1f}, {100 * high:.1f}] | "
+                   f"{forest_text} | "
                    f"{np.median(error):.3f} | {100 * np.mean(floor > 1.0):.1f} % | "
                    f"{100 * np.mean(removed > 1.0):.1f} % | {np.median(removed):.3f} | "
                    f"{np.median(count / np.maximum(seen, 1)):.2f} | "

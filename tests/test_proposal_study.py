@@ -5,7 +5,8 @@ import jax
 import numpy as np
 import pytest
 
-from experiments.proposal_study import clustered_interval, point_keys, wilson
+from experiments.proposal_study import (clustered_interval, main, point_keys, select_runs,
+                                       wilson)
 
 
 def _as_tuples(keys) -> set:
@@ -99,3 +100,31 @@ def test_clustered_interval_covers_when_the_rate_depends_on_the_forest():
 def test_clustered_interval_bad_shapes(runs, forests):
     with pytest.raises(ValueError, match="forests"):
         clustered_interval(np.zeros(runs, bool), forests)
+
+
+def test_select_runs_picks_forests_in_study_order():
+    """Forest f of a study of R runs in F forests holds runs f R / F onward: forests 1 and 3
+    of 4 x 5 runs, first 2 of each, are runs 5, 6, 15, 16; bad forests or counts are refused
+    with the flag's name."""
+    np.testing.assert_array_equal(select_runs(20, 4, [1, 3], 2), [5, 6, 15, 16])
+    np.testing.assert_array_equal(select_runs(20, 4), np.arange(20))
+    with pytest.raises(ValueError, match=r"--only-forests \[4\]"):
+        select_runs(20, 4, [4])
+    with pytest.raises(ValueError, match="--per-forest 6"):
+        select_runs(20, 4, None, 6)
+
+
+def test_a_subset_runs_with_the_keys_it_has_in_the_whole_study(tmp_path):
+    """``--only-forests 1 --per-forest 1`` runs log 2 of a 4-log, 2-forest study with that
+    log's own key: its final error equals the whole study's error of log 2 (rtol 1e-5: the
+    same float32 program, vmapped over 1 log instead of 2)."""
+    common = ["--runs", "4", "--forests", "2", "--wobble", "0.3", "--odometry", "6",
+              "--particles", "5", "--proposals", "motion"]
+    main(common + ["--chunk", "2", "--errors", str(tmp_path / "all.npz")])
+    main(common + ["--chunk", "1", "--only-forests", "1", "--per-forest", "1",
+                   "--errors", str(tmp_path / "one.npz")])
+    whole = np.load(tmp_path / "all.npz")["0.3/6/5/motion"]
+    one = np.load(tmp_path / "one.npz")["0.3/6/5/motion"]
+    assert whole.shape == (4,) and one.shape == (1,)
+    np.testing.assert_allclose(one[0], whole[2], rtol=1e-5)
+    assert abs(one[0] - whole[3]) > 1e-3  # the neighbour's key would give another run
