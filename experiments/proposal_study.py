@@ -132,12 +132,15 @@ def make_logs(key, params, wobble: float, runs: int, forests: int):
             np.asarray(seen))
 
 
-def run_point(config, params, key, controls, obs, truth, chunk: int, run_ids=None):
+def run_point(config, params, key, controls, obs, truth, chunk: int, run_ids=None,
+              total_runs: int | None = None):
     """Final errors (R,), landmark counts (R,), final position NEES (R,), the first-step floor
     and the error with it removed (R,) each (``first_step_errors``), compile [s] and run [s]
     of the vmapped filter. Run r's key is ``split(key, R)[r]``; with ``run_ids`` (R,) the logs
-    are a subset of a larger set and log i takes that set's key ``split(key, max)[run_ids[i]]``
-    (``select_runs``: a subset runs with the keys it has in the whole study)."""
+    are a subset of a study of ``total_runs`` logs and log i takes that study's key
+    ``split(key, total_runs)[run_ids[i]]`` (``select_runs``: a subset runs with the keys it
+    has in the whole study; the split must be of the whole study's size, as a split's keys
+    depend on its size unless ``jax_threefry_partitionable`` is on)."""
     filt = make_filter(config)
 
     def one(key, controls, obs, start, end):
@@ -151,7 +154,7 @@ def run_point(config, params, key, controls, obs, truth, chunk: int, run_ids=Non
     batched = jax.jit(jax.vmap(one))
     runs = controls.shape[0]
     keys = (jax.random.split(key, runs) if run_ids is None
-            else jax.random.split(key, int(np.max(run_ids)) + 1)[np.asarray(run_ids)])
+            else jax.random.split(key, total_runs)[np.asarray(run_ids)])
     tick = time.perf_counter()
     sl = slice(0, chunk)
     compiled = batched.lower(keys[sl], controls[sl], jax.tree.map(lambda a: a[sl], obs),
@@ -186,6 +189,8 @@ def select_runs(runs: int, forests: int, only_forests=None, per_forest=None) -> 
     bad = [f for f in chosen if not 0 <= f < forests]
     if bad:
         raise ValueError(f"--only-forests {bad}: the study has forests 0..{forests - 1}")
+    if len(set(chosen)) < len(chosen):
+        raise ValueError(f"--only-forests {list(chosen)} names a forest twice; name each once")
     first = each if per_forest is None else per_forest
     if not 1 <= first <= each:
         raise ValueError(f"--per-forest {first}: each forest has {each} logs; expected 1..{each}")
@@ -259,7 +264,7 @@ def main(argv=None):
         run_ids = select_runs(args.runs, args.forests, args.only_forests, args.per_forest)
     except ValueError as error:
         raise SystemExit(str(error))
-    subset = run_ids.size < args.runs
+    subset = not np.array_equal(run_ids, np.arange(args.runs))
     forests = len(args.only_forests) if args.only_forests is not None else args.forests
     runs = run_ids.size
     if runs % min(args.chunk, runs):
@@ -286,7 +291,7 @@ def main(argv=None):
                                               for k, v in param_fields.items()})
             error, count, nees, floor, removed, compile_s, run_s = run_point(
                 config, params, key_filters, controls, obs, truth,
-                min(args.chunk, runs), run_ids if subset else None)
+                min(args.chunk, runs), run_ids if subset else None, args.runs)
             diverged = int(np.sum(error > 1.0))
             low, high = wilson(diverged, runs)
             forest_text = ("n/a (one forest)" if forests < 2 else

@@ -29,6 +29,7 @@ import victoria_park_pipeline as vps  # experiments/ (this script's folder)
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam.datasets import victoria_park as vpm
+from jaxslam.self_calibration import interval_text
 
 
 def parse_args():
@@ -167,9 +168,9 @@ def calibration_lines(calibration) -> list[str]:
              f"{calibration['iterations']} EM iterations, {calibration['verdict']}.", "",
              "| field | calibrated value |", "|---|---|"]
     lines += [f"| {name} | {_fmt(value)} |" for name, value in values.items()]
-    spread = 1.96 * calibration.get("radius_relative_std", float("nan"))
+    spread = interval_text(calibration.get("radius_relative_std", float("nan")))
     lines += [f"| radius_noise (from {calibration['radius_samples']} observations; 95 % "
-              f"interval +- {100 * spread:.2g} %, bootstrap over landmarks) | "
+              f"interval: {spread}, bootstrap over landmarks) | "
               f"{calibration['radius_noise']:.4g} |",
               f"| filter_log's own run (its key): online RMSE [m] / trees "
               f"| {calibration['online_rmse']:.2f} / {calibration['num_trees']} |", ""]

@@ -360,7 +360,8 @@ def radius_noise_from_history(ids, radius, valid, min_sightings: int = 3,
     into a new landmark. For Gaussian scatter the two agree up to sampling noise. Returns
     (std, observations used); (nan, 0) when no landmark was seen often enough.
     """
-    deviations = _radius_deviations(ids, radius, valid, min_sightings, quantile)
+    _check_quantile(quantile)
+    deviations = _radius_deviations(ids, radius, valid, min_sightings)
     if not deviations:
         return float("nan"), 0
     pooled = np.concatenate(deviations)
@@ -382,8 +383,13 @@ def radius_noise_relative_error(ids, radius, valid, min_sightings: int = 3,
     and 8.5 on resampling whole groups). As with ``std_relative_error`` it is the sampling
     error only: a landmark that merges two trees or splits one is not in it. inf when fewer
     than 2 landmarks qualify or the std is 0; nan inputs as ``radius_noise_from_history``.
+    ``replicates`` below 2 is refused.
     """
-    deviations = _radius_deviations(ids, radius, valid, min_sightings, quantile)
+    if isinstance(replicates, bool) or not isinstance(replicates, (int, np.integer)) \
+            or replicates < 2:
+        raise ValueError(f"replicates must be an integer >= 2; got {replicates!r}")
+    _check_quantile(quantile)
+    deviations = _radius_deviations(ids, radius, valid, min_sightings)
     std = _radius_std(np.concatenate(deviations), quantile) if deviations else 0.0
     if len(deviations) < 2 or not std > 0.0:
         return float("inf")
@@ -394,11 +400,14 @@ def radius_noise_relative_error(ids, radius, valid, min_sightings: int = 3,
     return float(np.std(stds, ddof=1) / std)
 
 
-def _radius_deviations(ids, radius, valid, min_sightings: int, quantile: float) -> list:
-    """Per qualifying landmark (``min_sightings`` measured radii or more), its radii's
-    deviations (n_j,) from its own median; [] when none qualifies."""
+def _check_quantile(quantile: float) -> None:
     if quantile not in CHI2_1DOF:
         raise ValueError(f"quantile must be one of {sorted(CHI2_1DOF)}; got {quantile!r}")
+
+
+def _radius_deviations(ids, radius, valid, min_sightings: int) -> list:
+    """Per qualifying landmark (``min_sightings`` measured radii or more), its radii's
+    deviations (n_j,) from its own median; [] when none qualifies."""
     ids = np.where(measured_radii(radius, valid), np.asarray(ids), -1).ravel()
     radius = np.asarray(radius, np.float64).ravel()
     keep = ids >= 0

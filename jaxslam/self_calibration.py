@@ -459,6 +459,16 @@ def _with_radius(params: Params, radius: dict, gate_fitted: bool) -> Params:
     return params
 
 
+def interval_text(relative_std: float) -> str:
+    """A relative standard error as its printed 95 % interval: "+- 9.8 %" (1.96 times it, two
+    significant digits and no exponent: "+- 120 %", "+- 0.26 %"), or "no interval" when it
+    is not finite (a trunk-radius std from a single landmark's radii; a figure not stated)."""
+    percent = 196.0 * float(relative_std)
+    if not np.isfinite(percent):
+        return "no interval"
+    return f"+- {percent:.0f} %" if percent >= 10 else f"+- {percent:.2g} %"
+
+
 def _stated_errors(m_steps: list, source, steps: int) -> tuple[dict, dict, bool | None]:
     """(relative_std, samples, bursts_fitted) of ``CalibrationInfo``: each group as its
     latest fit among the M-steps up to ``source`` (the one behind the returned settings)
@@ -777,10 +787,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                           any("association_gate" in step.update for step in m_steps[:behind]))
     values.update(fitted_radius)
     if fitted_radius:
-        error = source.radius_relative_std
-        spread = (f"+- {196 * error:.2g} % " if np.isfinite(error)
-                  else "(no interval: one landmark's radii) ")
-        chosen += (f"; trunk-radius std {_plain(params.radius_noise):.3g} m {spread}from "
+        chosen += (f"; trunk-radius std {_plain(params.radius_noise):.3g} m "
+                   f"({interval_text(source.radius_relative_std)}) from "
                    f"{source.radius_used} radii")
     if _plain(params.association_gate) != _plain(em_params.association_gate):
         values["association_gate"] = _plain(params.association_gate)

@@ -548,6 +548,10 @@ def test_calibration_print_gives_the_radius_std_with_its_interval(capsys):
     out = capsys.readouterr().out
     assert ("    radius       0.0503 m +- 9.8 %  (bootstrap over the landmarks of 2990 radii)"
             in out.splitlines())
+    info.relative_std = {"range": 0.001, "radius": float("inf")}  # one landmark's radii
+    _print_calibration(info)
+    assert ("    radius       0.0503 m no interval  (bootstrap over the landmarks of 2990 "
+            "radii)") in capsys.readouterr().out.splitlines()
     info.relative_std = {"range": 0.001}
     _print_calibration(info)
     assert "bootstrap" not in capsys.readouterr().out

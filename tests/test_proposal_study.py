@@ -112,6 +112,8 @@ def test_select_runs_picks_forests_in_study_order():
         select_runs(20, 4, [4])
     with pytest.raises(ValueError, match="--per-forest 6"):
         select_runs(20, 4, None, 6)
+    with pytest.raises(ValueError, match="names a forest twice"):
+        select_runs(20, 4, [1, 1])
 
 
 def test_a_subset_runs_with_the_keys_it_has_in_the_whole_study(tmp_path):

@@ -75,14 +75,9 @@ def _load_robot_log(path, args=None):
     return log
 
 
-def _percent(value: float) -> str:
-    """A percentage to two significant digits, without exponent: 11, 2.5, 0.26."""
-    return f"{value:.0f}" if value >= 10 else f"{value:.2g}"
-
-
 def _print_calibration(info) -> None:
     from jaxslam.calibration_residuals import NOISE_GROUP_UNITS, NOISE_GROUPS
-    from jaxslam.self_calibration import em_typical_std, group_scales
+    from jaxslam.self_calibration import em_typical_std, group_scales, interval_text
 
     print(f"calibration: {info.verdict} ({info.iterations} iterations)")
     for name, value in info.values.items():
@@ -97,15 +92,15 @@ def _print_calibration(info) -> None:
     for group, (name, unit) in enumerate(zip(NOISE_GROUPS, NOISE_GROUP_UNITS)):
         if name not in info.relative_std:
             continue
-        line = (f"    {name:<12} {fitted[group]:.4g} {unit} +- "
-                f"{_percent(196 * info.relative_std[name])} %")
+        line = (f"    {name:<12} {fitted[group]:.4g} {unit} "
+                f"{interval_text(info.relative_std[name])}")
         if scales[group] != 1.0:
             line += (f"  (x{scales[group]:g} by the likelihood's search: "
                      f"{info.typical_std[-1, group]:.4g} {unit} used)")
         print(line)
     if "radius" in info.relative_std and "radius_noise" in info.values:
-        print(f"    {'radius':<12} {info.values['radius_noise']:.4g} m +- "
-              f"{_percent(196 * info.relative_std['radius'])} %  (bootstrap over the "
+        print(f"    {'radius':<12} {info.values['radius_noise']:.4g} m "
+              f"{interval_text(info.relative_std['radius'])}  (bootstrap over the "
               f"landmarks of {info.samples.get('radius', 0)} radii)")
 
 
