@@ -50,3 +50,21 @@ def test_barcodes_refuse_the_options_they_do_not_run(capsys):
         with pytest.raises(SystemExit):
             experiment.main(["--barcodes", "both", "--robots", "1", *extra])
         assert "--barcodes calibrates and filters only" in capsys.readouterr().err
+
+
+def test_start_params_sets_only_the_existence_cap():
+    """``--existence-max X``: the starting settings (``starting_params`` when calibrating,
+    ``default_params`` otherwise) with ``existence_max`` X and every other field unchanged;
+    no value: None, so the pipeline picks its own default."""
+    from jaxslam.self_calibration import starting_params
+    from jaxslam.types import default_params
+
+    config = FilterConfig()
+    assert experiment.start_params(config, None) is None
+    for calibrate, base in ((True, starting_params(config)), (False, default_params(config))):
+        got = experiment.start_params(config, 1000.0, calibrate)
+        assert float(got.existence_max) == 1000.0
+        for name in base._fields:
+            if name != "existence_max":
+                np.testing.assert_array_equal(np.asarray(getattr(got, name)),
+                                              np.asarray(getattr(base, name)), err_msg=name)
