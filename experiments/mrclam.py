@@ -129,8 +129,8 @@ def start_params(config: FilterConfig, existence_max: float | None, calibrate: b
     default) when neither is changed."""
     if existence_max is None:
         return None
-    base = starting_params(config) if calibrate else default_params(config)
-    return base._replace(existence_max=jnp.asarray(existence_max, base.existence_max.dtype))
+    return (starting_params if calibrate else default_params)(config,
+                                                              existence_max=existence_max)
 
 
 def with_barcodes(log, obs_landmark, config: FilterConfig, barcodes: str, seed: int,

@@ -532,11 +532,13 @@ def _stalled(objective, dropped, patience: int | None, fill_step=None) -> bool:
     return len(objective) - 1 - _best_run(objective, dropped, fill_step) >= patience
 
 
-def _fit_warnings(last: _MStep | None, steps: int, fit_radius: bool = False,
+def _fit_warnings(last: _MStep | None, steps: int, radius_step: _MStep | None = None,
                   radius_kept: float = 0.0) -> list[str]:
+    """Plain-word warnings for the groups kept at their start; ``radius_step``: the M-step
+    whose association the returned radius std comes from (None: no radius std to fit)."""
     out = []
-    if fit_radius and last is not None and last.radius_used < MIN_OBSERVATIONS:
-        out.append(f"the log carries trunk radii, but only {last.radius_used} belong to "
+    if radius_step is not None and radius_step.radius_used < MIN_OBSERVATIONS:
+        out.append(f"the log carries trunk radii, but only {radius_step.radius_used} belong to "
                    f"landmarks with {MIN_SIGHTINGS} or more of them (need "
                    f"{MIN_OBSERVATIONS}) to fit the radius std: kept the given "
                    f"radius_noise ({radius_kept:g} m)")
@@ -813,7 +815,9 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         params = params._replace(association_heading_std=given_heading_std)
         values.pop("association_heading_std", None)
     typical.append(typical_stds(params, odometry, z_range))
-    warnings += _fit_warnings(last, steps, fit_radius, given_radius)
+    # The radius warning speaks of the M-step behind the returned settings (else the last).
+    warnings += _fit_warnings(last, steps, (source or last) if fit_radius else None,
+                              given_radius)
     if converged:
         verdict = "converged"
     elif stalled:

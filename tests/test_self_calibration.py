@@ -1016,3 +1016,19 @@ def test_bad_patience(bad):
 def test_good_patience_passes_the_check(good):
     sc._check_patience(good)  # raises on anything else (test_bad_patience)
 
+
+
+def test_radius_warning_speaks_of_the_m_step_behind_the_returned_settings():
+    """The too-few-radii warning is decided on the M-step whose association the returned
+    radius std would come from (``calibrate_params`` passes the returned settings' M-step,
+    else the last): 12 radii there warn even when the last M-step had 30; 30 there do not
+    warn; no radius std to fit (None) never warns."""
+    def step(radius_used):
+        return sc._MStep({}, 0.0, True, True, 100, {}, False, None, radius_used)
+
+    said = lambda warnings: [w for w in warnings if "trunk radii" in w]
+    assert said(sc._fit_warnings(step(30), 200, step(12), 0.03)) == [
+        "the log carries trunk radii, but only 12 belong to landmarks with 3 or more of "
+        "them (need 20) to fit the radius std: kept the given radius_noise (0.03 m)"]
+    assert said(sc._fit_warnings(step(12), 200, step(30), 0.03)) == []
+    assert said(sc._fit_warnings(step(12), 200, None, 0.03)) == []
