@@ -88,14 +88,19 @@ def bench_step(num_particles, max_landmarks, max_obs, association="stable",
 
 
 def bench_batch(num_runs, chunk, num_particles, max_landmarks, max_obs, num_steps,
-                association="stable", proposal="motion"):
+                association="stable", proposal="motion", association_window=0):
+    """Time R runs in chunks; returns (compile s, filter s, simulator s, window cut): the
+    window cut is the most landmarks any step of any run's association window left out
+    although they could have taken part (``StepInfo.window_cut``; 0: the windowed runs are
+    the full association's)."""
     from jaxslam.studies import StudyConfig, scenario_batch
     from jaxslam.filter import make_filter, scan_filter
     from jaxslam.types import FilterConfig, default_params
     from sims.config import ScenarioConfig
 
     config = FilterConfig(num_particles=num_particles, max_landmarks=max_landmarks,
-                          max_obs=max_obs, association=association, proposal=proposal)
+                          max_obs=max_obs, association=association, proposal=proposal,
+                          association_window=association_window)
     study = StudyConfig(num_runs=num_runs, chunk_size=chunk, filter=config,
                         scenario=ScenarioConfig(num_steps=num_steps))
     params = default_params(config)
@@ -103,11 +108,12 @@ def bench_batch(num_runs, chunk, num_particles, max_landmarks, max_obs, num_step
     def one(key, controls, observations, start_pose):
         state = make_filter(config).init(start_pose)
         final, trace = scan_filter(config, key, state, params, controls, observations)
-        return trace.mean_pose[-1]
+        return trace.mean_pose[-1], jnp.max(trace.window_cut)
 
     batched = None  # built at the first chunk: a shared world's start pose is one (3,)
     sim_s = filter_s = compile_s = 0.0
     compiled = None
+    window_cut = 0
     for start in range(0, num_runs, chunk):
         ids = np.arange(start, start + chunk)
         tick = time.perf_counter()
@@ -124,14 +130,17 @@ def bench_batch(num_runs, chunk, num_particles, max_landmarks, max_obs, num_step
             compiled = batched.lower(*args).compile()
             compile_s = time.perf_counter() - tick
         tick = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
+        _, cut = jax.block_until_ready(compiled(*args))
         filter_s += time.perf_counter() - tick
+        window_cut = max(window_cut, int(np.max(cut)))
     runs = (num_runs // chunk) * chunk
     rate = runs * num_particles * num_steps / filter_s
     print(f"batch R={runs} P={num_particles} M={max_landmarks} K={max_obs} T={num_steps} "
-          f"chunk={chunk} assoc={association} world={study.scenario.world}: compile {compile_s:.1f} s, filter {filter_s:.1f} s "
-          f"({rate / 1e3:.0f} k particle-steps/s), simulator {sim_s:.1f} s")
-    return compile_s, filter_s, sim_s
+          f"chunk={chunk} assoc={association} window={association_window or 'none'} "
+          f"world={study.scenario.world}: compile {compile_s:.1f} s, filter {filter_s:.1f} s "
+          f"({rate / 1e3:.0f} k particle-steps/s), simulator {sim_s:.1f} s, window cut "
+          f"{window_cut}")
+    return compile_s, filter_s, sim_s, window_cut
 
 
 def main(argv=None):
@@ -144,6 +153,9 @@ def main(argv=None):
     parser.add_argument("--chunk", type=int, default=250)
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--skip-step", action="store_true")
+    parser.add_argument("--association-window", type=int, default=0,
+                        help="batch case: match against each particle's N nearest landmarks "
+                             "(FilterConfig.association_window; 0: all)")
     args = parser.parse_args(argv)
     print(f"jax {jax.__version__} backend={jax.default_backend()} devices={jax.devices()}")
     if not args.skip_step:
@@ -151,7 +163,8 @@ def main(argv=None):
             bench_step(*shape, association=args.association, proposal=args.proposal)
     if args.batch_runs:
         bench_batch(args.batch_runs, min(args.chunk, args.batch_runs), 100, 64, 16, args.steps,
-                    association=args.association, proposal=args.proposal)
+                    association=args.association, proposal=args.proposal,
+                    association_window=args.association_window)
 
 
 if __name__ == "__main__":

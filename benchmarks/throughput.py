@@ -13,7 +13,11 @@ Cases, each timed as compile time and run time apart (after ``block_until_ready`
            which pays the dispatch every step.
   batched  R such runs vmapped in one call: time a run-step = run time / (R T).
   study    R runs x P = 100 x M = 64 x K = 16 x T (the issue's batched case) on the default
-           simulated forest: particle-steps per second.
+           simulated forest: particle-steps per second. With ``--association-window N`` each
+           particle matches against its N nearest landmarks only; the row then gives the
+           window cut, the most landmarks that could have taken part but fell outside the
+           window in any step of any run (``StepInfo.window_cut``): 0 means the runs are the
+           full association's, so the speed is the same filter's.
 
 Ratios are PythonRobotics' 27.4 ms over jaxslam's time a (run-)step; the issue's targets are
 >= 200x (single), >= 1000x (batched) and >= 200 k particle-steps/s (study).
@@ -22,6 +26,7 @@ Usage:
   python benchmarks/throughput.py                       # default proposal, all three cases
   python benchmarks/throughput.py --proposal motion --runs 1000 --steps 200
   python benchmarks/throughput.py --cases single --json out.json
+  python benchmarks/throughput.py --cases study --proposal motion --association-window 24
 """
 from __future__ import annotations
 
@@ -164,20 +169,20 @@ def bench_batched(proposal, num_runs, num_steps):
     return row
 
 
-def bench_study(proposal, num_runs, chunk, num_steps):
+def bench_study(proposal, num_runs, chunk, num_steps, association_window=0):
     """The issue's batched case: R x P = 100 x M = 64 x K = 16 x T, default forest."""
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
     from filter_step import bench_batch
 
     config = _config(100, 64, 16, proposal)
-    compile_s, filter_s, sim_s = bench_batch(num_runs, min(chunk, num_runs), 100, 64, 16,
-                                             num_steps, association=config.association,
-                                             proposal=config.proposal)
+    compile_s, filter_s, sim_s, window_cut = bench_batch(
+        num_runs, min(chunk, num_runs), 100, 64, 16, num_steps, association=config.association,
+        proposal=config.proposal, association_window=association_window)
     rate = (num_runs // min(chunk, num_runs)) * min(chunk, num_runs) * 100 * num_steps / filter_s
     return dict(case="study", proposal=config.proposal, R=num_runs, chunk=chunk, P=100, M=64,
                 K=16, T=num_steps, compile_s=compile_s, run_s=filter_s, simulator_s=sim_s,
-                particle_steps_per_s=rate,
-                target=TARGETS["study_particle_steps_per_s"])
+                particle_steps_per_s=rate, association_window=association_window,
+                window_cut=window_cut, target=TARGETS["study_particle_steps_per_s"])
 
 
 def main(argv=None):
@@ -190,10 +195,15 @@ def main(argv=None):
     parser.add_argument("--runs", type=int, default=1000, help="runs of the batched cases")
     parser.add_argument("--chunk", type=int, default=250, help="chunk of the study case")
     parser.add_argument("--steps", type=int, default=200)
+    parser.add_argument("--association-window", type=int, default=0,
+                        help="study case: match against each particle's N nearest landmarks "
+                             "(FilterConfig.association_window; 0: all M = 64)")
     parser.add_argument("--json", help="write the rows to this JSON file")
     args = parser.parse_args(argv)
     if args.runs < 1 or args.steps < 1 or args.chunk < 1:
         parser.error("--runs, --steps and --chunk must be positive integers")
+    if args.association_window < 0:
+        parser.error("--association-window must be 0 (all landmarks) or a positive integer")
     print(f"jax {jax.__version__} backend={jax.default_backend()} devices={jax.devices()}; "
           f"jaxslam from {_jaxslam_dir()}; "
           f"PythonRobotics FastSLAM 1 reference {1e3 * PYTHONROBOTICS_STEP_S:.1f} ms a step")
@@ -203,7 +213,8 @@ def main(argv=None):
     if "batched" in args.cases:
         rows.append(bench_batched(args.proposal, args.runs, args.steps))
     if "study" in args.cases:
-        rows.append(bench_study(args.proposal, args.runs, args.chunk, args.steps))
+        rows.append(bench_study(args.proposal, args.runs, args.chunk, args.steps,
+                                args.association_window))
     if args.json:
         with open(args.json, "w") as handle:
             json.dump(rows, handle, indent=2)

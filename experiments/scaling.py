@@ -43,7 +43,7 @@ def main():
               "| runs R | compile [s] | filter [s] | run-steps/s | particle-steps/s |",
               "|---|---|---|---|---|"]
     for runs in (1, 8, 64, 256, 1024):
-        compile_s, filter_s, _ = bench.bench_batch(runs, runs, 30, 64, 16, 50)
+        compile_s, filter_s, _, _ = bench.bench_batch(runs, runs, 30, 64, 16, 50)
         lines.append(f"| {runs} | {compile_s:.1f} | {filter_s:.2f} | {runs * 50 / filter_s:,.0f} | "
                      f"{runs * 50 * 30 / filter_s:,.0f} |")
     text = "\n".join(lines) + "\n"

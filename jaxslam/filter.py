@@ -86,6 +86,9 @@ class StepInfo(NamedTuple):
       marginal likelihood of the log (``self_calibration`` monitors its EM with it).
     invalid_control: () bool, the control held a NaN or inf and was masked: the poses were
       kept (module docstring), and ``mixture_ratio`` is 0 for the step.
+    window_cut: () int32 the most landmarks any particle's ``association_window`` left out
+      although they could have taken part in its association (``landmarks.may_take_part``);
+      0 without a window. While it stays 0 the window gives the full association's result.
     """
 
     ess: jnp.ndarray
@@ -105,6 +108,7 @@ class StepInfo(NamedTuple):
     birth_slot: jnp.ndarray
     log_evidence: jnp.ndarray
     invalid_control: jnp.ndarray
+    window_cut: jnp.ndarray
 
 
 class Filter(NamedTuple):
@@ -149,7 +153,8 @@ class Trace(NamedTuple):
     lineage: ``Lineage`` with ``record_lineage=True``, else None; log_evidence (T,)
     (``StepInfo.log_evidence``; its sum is the log marginal likelihood estimate);
     invalid_control (T,) bool, ``StepInfo.invalid_control`` (``trace.invalid_control.sum()``
-    is the number of masked control rows of the run).
+    is the number of masked control rows of the run); window_cut (T,) int32,
+    ``StepInfo.window_cut`` (all 0: the association window never changed the result).
     """
 
     mean_pose: jnp.ndarray
@@ -166,6 +171,7 @@ class Trace(NamedTuple):
     lineage: Lineage | None = None
     log_evidence: jnp.ndarray | None = None
     invalid_control: jnp.ndarray | None = None
+    window_cut: jnp.ndarray | None = None
 
 
 # --------------------------------------------------------------------------------------------
@@ -227,7 +233,8 @@ def _step_info(proposed, weights, mapped, resampled, num_invalid,
         mean_log_likelihood=weights.mean_log_likelihood,
         best_particle=resampled.best_particle, ancestor=resampled.ancestor,
         birth_slot=mapped.birth_slot, log_evidence=weights.log_evidence,
-        invalid_control=invalid_control)
+        invalid_control=invalid_control,
+        window_cut=jnp.max(proposed.association.window_cut).astype(jnp.int32))
 
 
 def _step(config: FilterConfig, key, state: FilterState, params: Params, control,
@@ -310,6 +317,7 @@ def _trace_row(state: FilterState, info: StepInfo, record_lineage: bool = False)
         num_dropped_births=jnp.sum(info.num_dropped_births), match_rounds=info.match_rounds,
         mixture_ratio=info.mixture_ratio, mean_log_likelihood=info.mean_log_likelihood,
         lineage=lineage, log_evidence=info.log_evidence, invalid_control=info.invalid_control,
+        window_cut=info.window_cut,
     )
 
 

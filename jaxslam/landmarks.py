@@ -95,6 +95,37 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
                       matchable & may_be_missed)
 
 
+def may_take_part(distance, landmark_cov, active, params: Params, boundary: str):
+    """(M,) bool: the active landmarks that could take part in an association made at a pose
+    ``distance`` (M,) [m] away from them, found without predicting any measurement.
+
+    A landmark takes part when it is matchable (r <= R_max, or r <= R_max - w_m with the loose
+    boundary) or in the loose boundary's ring (r <= R_max + w_m, where it may set an
+    observation aside); see ``visibility``. The ring's width is w_m = a sqrt(S_m[range, range])
+    with a = ``airlock_sigmas`` and S_rr = h^T Sigma_m h + sigma_r(r)^2 for the unit vector h
+    from the pose to the landmark, and h^T Sigma_m h <= sxx + syy (the trace bounds the
+    largest eigenvalue), so
+
+        hard:  r <= R_max
+        loose: r <= R_max + a sqrt(sxx + syy + sigma_r(r)^2)
+
+    holds every landmark that could take part (and a few more). ``step_propose`` counts the
+    ones its association window leaves out (``StepInfo.window_cut``).
+
+    Args:
+      distance: (M,) range from the matching pose; landmark_cov: (M, 3) components
+        (sxx, sxy, syy); active: (M,) bool.
+    """
+    if boundary == "hard":
+        return active & (distance <= params.max_range)
+    if boundary != "loose":
+        raise ValueError(f"boundary={boundary!r}; expected 'hard' or 'loose'")
+    sigma_range = measurement_std(distance, params)[0]
+    width = params.airlock_sigmas * jnp.sqrt(landmark_cov[:, 0] + landmark_cov[:, 2]
+                                             + sigma_range**2)
+    return active & (distance <= params.max_range + width)
+
+
 def update_existence(existence, matched, missed, params: Params):
     """Log-odds evidence update of (M,) slots: + hit for matched, + miss for missed."""
     hit = jnp.log(params.detection_probability / params.false_alarm_probability)

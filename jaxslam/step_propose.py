@@ -215,6 +215,7 @@ def propose(config: FilterConfig, key, params: Params, particles: Particles, con
         x_hat = predict_pose(particle.pose, control, params, config.motion_model)
         gaussian, found, efficiency = _observation_gaussian(config, params, particle, x_hat,
                                                             control, obs)
+        cut_at_x_hat = jnp.max(found.window_cut)  # every piece's association shaped q
         phi = jnp.where(keep_pose, ratio, particle_ratio(config, params, efficiency, ratio))
         pose, used_obs, piece = proposal.mixture_sample(k, motion_sample, gaussian, phi)
         if config.burst_proposal:
@@ -228,6 +229,7 @@ def propose(config: FilterConfig, key, params: Params, particles: Particles, con
         again = ~used_obs | config.associate_at_sample
         at_sample = associate(config, params, particle, pose, obs)
         found = jax.tree.map(lambda a, b: jnp.where(again, a, b), at_sample, found)
+        found = found._replace(window_cut=jnp.maximum(found.window_cut, cut_at_x_hat))
         # A kept pose was not proposed: there is no density ratio to correct (and the zero
         # control's p_motion at it is NaN when the constant noise terms are 0).
         correction = jnp.where(keep_pose, jnp.zeros_like(correction), correction)
@@ -249,6 +251,8 @@ class Association(NamedTuple):
     predicted: ``ekf.PredictedMeasurement`` with (N,) leaves at the matching pose, over the
       N landmarks of the association window (all M slots without a window).
     local_match: (K,) int32 index into ``predicted`` (-1: unmatched).
+    window_cut: () int32 landmarks that could have taken part but fell outside the
+      association window (0 without one; ``_window``).
     """
 
     match: jnp.ndarray
@@ -256,17 +260,21 @@ class Association(NamedTuple):
     visibility: landmarks.Visibility
     predicted: ekf.PredictedMeasurement
     local_match: jnp.ndarray
+    window_cut: jnp.ndarray
 
 
-def _window(config: FilterConfig, particle: Particles, pose):
+def _window(config: FilterConfig, params: Params, particle: Particles, pose):
     """The N = ``association_window`` active landmarks nearest ``pose`` (3,).
 
-    Returns (slots (N,) int32, the particle restricted to them), or (None, particle) when the
-    window covers every slot: predictions and pair costs then cost O(K N) instead of O(K M).
+    Returns (slots (N,) int32, the particle restricted to them, cut () int32), or
+    (None, particle, 0) when the window covers every slot: predictions and pair costs then
+    cost O(K N) instead of O(K M). ``cut`` counts the landmarks outside the window that could
+    have taken part in the association (``landmarks.may_take_part``): while it is 0 the
+    window changes nothing but the order of the pairs.
     """
     window = config.association_window
     if not 0 < window < config.max_landmarks:
-        return None, particle
+        return None, particle, jnp.zeros((), jnp.int32)
     distance = jnp.hypot(particle.landmark_mean[:, 0] - pose[0],
                          particle.landmark_mean[:, 1] - pose[1])
     _, slots = jax.lax.top_k(-jnp.where(particle.active, distance, jnp.inf), window)
@@ -276,7 +284,10 @@ def _window(config: FilterConfig, particle: Particles, pose):
                               radius_count=particle.radius_count[slots],
                               active=particle.active[slots],
                               landmark_id=particle.landmark_id[slots])
-    return slots, local
+    outside = jnp.ones(config.max_landmarks, bool).at[slots].set(False)
+    in_view = landmarks.may_take_part(distance, particle.landmark_cov, particle.active, params,
+                                      config.boundary)
+    return slots, local, jnp.sum(in_view & outside).astype(jnp.int32)
 
 
 def _to_slots(window_values, slots, num_slots: int):
@@ -302,7 +313,7 @@ def associate(config: FilterConfig, params: Params, particle: Particles, match_p
     nearer than R_max - w_k still cannot pair with a landmark beyond the ring, as
     ``landmarks`` states, whatever the pose covariance (``tests/test_matching_airlock.py``).
     """
-    slots, local = _window(config, particle, match_pose)
+    slots, local, cut = _window(config, params, particle, match_pose)
     predicted = ekf.predict_measurements(match_pose, local.landmark_mean, local.landmark_cov,
                                          params)
     local_predicted = (predicted if pose_cov is None
@@ -326,4 +337,4 @@ def associate(config: FilterConfig, params: Params, particle: Particles, match_p
                           -1).astype(jnp.int32)
         vis = vis._replace(**{name: _to_slots(getattr(vis, name), slots, config.max_landmarks)
                               for name in ("matchable", "explained", "expected")})
-    return Association(match, rounds, vis, predicted, local_match)
+    return Association(match, rounds, vis, predicted, local_match, cut)

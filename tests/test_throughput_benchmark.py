@@ -22,3 +22,15 @@ def test_tiny_single_and_batched_rows(load_benchmark, tmp_path):
     assert math.isclose(single["ratio"], reference / (single["run_s"] / 5))
     assert math.isclose(batched["run_step_us"], 1e6 * batched["run_s"] / 10)
     assert math.isclose(batched["particle_steps_per_s"], 2 * 100 * 5 / batched["run_s"])
+
+
+def test_tiny_study_row_with_a_window_reports_what_the_window_cut(load_benchmark):
+    """The study case at R 2 x T 5 with a window of 2 landmarks, less than the trees a step
+    sees (the default forest shows up to K = 16): the row must say that the window left
+    landmarks out, so that its speed is not read as the full association's."""
+    throughput = load_benchmark("throughput")
+    (row,) = throughput.main(["--proposal", "motion", "--cases", "study", "--runs", "2",
+                              "--chunk", "2", "--steps", "5", "--association-window", "2"])
+    assert (row["case"], row["association_window"], row["R"], row["T"]) == ("study", 2, 2, 5)
+    assert row["window_cut"] > 0
+    assert math.isclose(row["particle_steps_per_s"], 2 * 100 * 5 / row["run_s"])
