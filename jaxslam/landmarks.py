@@ -30,7 +30,8 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from jaxslam.ekf import PredictedMeasurement, measurement_std
+from jaxslam.ekf import PredictedMeasurement, measurement_std, sandwich
+from jaxslam.geometry import range_bearing_jacobian_point
 from jaxslam.types import Params
 
 
@@ -95,35 +96,34 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
                       matchable & may_be_missed)
 
 
-def may_take_part(distance, landmark_cov, active, params: Params, boundary: str):
-    """(M,) bool: the active landmarks that could take part in an association made at a pose
-    ``distance`` (M,) [m] away from them, found without predicting any measurement.
+def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, boundary: str):
+    """(M,) bool: the active landmarks that take part in an association made at ``pose``,
+    found without predicting a bearing (the window's guard, ``StepInfo.window_cut``).
 
-    A landmark takes part when it is matchable (r <= R_max, or r <= R_max - w_m with the loose
-    boundary) or in the loose boundary's ring (r <= R_max + w_m, where it may set an
-    observation aside); see ``visibility``. The ring's width is w_m = a sqrt(S_m[range, range])
-    with a = ``airlock_sigmas`` and S_rr = h^T Sigma_m h + sigma_r(r)^2 for the unit vector h
-    from the pose to the landmark, and h^T Sigma_m h <= sxx + syy (the trace bounds the
-    largest eigenvalue), so
+    A landmark takes part when it is matchable (r <= R_max, or r <= R_max - w_m with the
+    loose boundary) or in the loose boundary's ring (r <= R_max + w_m, where it may set an
+    observation aside); see ``visibility``. With h the unit vector from the pose to the
+    landmark, S_rr = h^T Sigma_m h + sigma_r(r)^2, the range entry of ``ekf``'s innovation
+    covariance computed by the same functions, and w_m = a sqrt(S_rr), a = ``airlock_sigmas``:
 
         hard:  r <= R_max
-        loose: r <= R_max + a sqrt(sxx + syy + sigma_r(r)^2)
-
-    holds every landmark that could take part (and a few more). ``step_propose`` counts the
-    ones its association window leaves out (``StepInfo.window_cut``).
+        loose: r <= R_max + a sqrt(S_rr)
 
     Args:
-      distance: (M,) range from the matching pose; landmark_cov: (M, 3) components
-        (sxx, sxy, syy); active: (M,) bool.
+      pose: (3,); landmark_mean: (M, 2); landmark_cov: (M, 3) components (sxx, sxy, syy);
+      active: (M,) bool.
     """
+    dx = landmark_mean[:, 0] - pose[0]
+    dy = landmark_mean[:, 1] - pose[1]
+    range_ = jnp.hypot(dx, dy)
     if boundary == "hard":
-        return active & (distance <= params.max_range)
+        return active & (range_ <= params.max_range)
     if boundary != "loose":
         raise ValueError(f"boundary={boundary!r}; expected 'hard' or 'loose'")
-    sigma_range = measurement_std(distance, params)[0]
-    width = params.airlock_sigmas * jnp.sqrt(landmark_cov[:, 0] + landmark_cov[:, 2]
-                                             + sigma_range**2)
-    return active & (distance <= params.max_range + width)
+    h00, h01, h10, h11 = range_bearing_jacobian_point(dx, dy)
+    s_rr = sandwich(h00, h01, h10, h11, landmark_cov[:, 0], landmark_cov[:, 1],
+                    landmark_cov[:, 2])[0] + measurement_std(range_, params)[0] ** 2
+    return active & (range_ <= params.max_range + params.airlock_sigmas * jnp.sqrt(s_rr))
 
 
 def update_existence(existence, matched, missed, params: Params):

@@ -285,8 +285,8 @@ def _window(config: FilterConfig, params: Params, particle: Particles, pose):
                               active=particle.active[slots],
                               landmark_id=particle.landmark_id[slots])
     outside = jnp.ones(config.max_landmarks, bool).at[slots].set(False)
-    in_view = landmarks.may_take_part(distance, particle.landmark_cov, particle.active, params,
-                                      config.boundary)
+    in_view = landmarks.may_take_part(pose, particle.landmark_mean, particle.landmark_cov,
+                                      particle.active, params, config.boundary)
     return slots, local, jnp.sum(in_view & outside).astype(jnp.int32)
 
 

@@ -22,26 +22,33 @@ def _params(dtype=jnp.float64, **overrides):
     return jax.tree.map(lambda leaf: jnp.asarray(leaf, dtype), params)
 
 
-def ref_may_take_part(distance, cov, active, params, boundary):
-    """Plain NumPy float64: r <= R_max (hard); r <= R_max + a sqrt(sxx + syy + s_r(r)^2),
-    s_r(r) = max(c_d r + c_0, floor) (loose)."""
-    distance, cov = np.asarray(distance, np.float64), np.asarray(cov, np.float64)
+def ref_may_take_part(pose, mean, cov, active, params, boundary):
+    """Plain NumPy float64: r <= R_max (hard); r <= R_max + a sqrt(S_rr) (loose), with
+    S_rr = h^T Sigma h + s_r(r)^2, h = (dx, dy) / r, s_r(r) = max(c_d r + c_0, floor)."""
+    pose, mean, cov = (np.asarray(v, np.float64) for v in (pose, mean, cov))
+    dx, dy = mean[:, 0] - pose[0], mean[:, 1] - pose[1]
+    distance = np.hypot(dx, dy)
     max_range = float(params.max_range)
     if boundary == "hard":
         return np.asarray(active) & (distance <= max_range)
+    hx, hy = dx / distance, dy / distance
     slope, const = (float(v) for v in np.asarray(params.range_noise))
     sigma = np.maximum(slope * distance + const, float(params.range_std_floor))
-    width = float(params.airlock_sigmas) * np.sqrt(cov[:, 0] + cov[:, 2] + sigma**2)
-    return np.asarray(active) & (distance <= max_range + width)
+    s_rr = hx * hx * cov[:, 0] + 2 * hx * hy * cov[:, 1] + hy * hy * cov[:, 2] + sigma**2
+    return np.asarray(active) & (distance <= max_range + float(params.airlock_sigmas)
+                                 * np.sqrt(s_rr))
 
 
 def _random_map(rng, num=40, spread=15.0):
     mean = rng.uniform(-spread, spread, (num, 2))
-    a = rng.uniform(0.0, 0.5, num) ** 2
-    c = rng.uniform(0.0, 0.5, num) ** 2
+    a = rng.uniform(0.0, 0.7, num) ** 2
+    c = rng.uniform(0.0, 0.7, num) ** 2
     b = rng.uniform(-1.0, 1.0, num) * np.sqrt(a * c)  # positive semi-definite
     active = rng.random(num) < 0.8
     return mean, np.stack([a, b, c], -1), active
+
+
+POSE = np.array([0.3, -0.2, 0.7])
 
 
 @pytest.mark.parametrize("boundary", ["hard", "loose"])
@@ -50,11 +57,10 @@ def test_may_take_part_matches_the_numpy_reference(boundary, jit):
     rng = np.random.default_rng(0)
     params = _params()
     mean, cov, active = _random_map(rng)
-    distance = np.hypot(mean[:, 0], mean[:, 1])
-    fn = lambda d, s, a: landmarks.may_take_part(d, s, a, params, boundary)
+    fn = lambda p, m, s, a: landmarks.may_take_part(p, m, s, a, params, boundary)
     fn = jax.jit(fn) if jit else fn
-    got = np.asarray(fn(jnp.asarray(distance), jnp.asarray(cov), jnp.asarray(active)))
-    want = ref_may_take_part(distance, cov, active, params, boundary)
+    got = np.asarray(fn(*(jnp.asarray(v) for v in (POSE, mean, cov, active))))
+    want = ref_may_take_part(POSE, mean, cov, active, params, boundary)
     np.testing.assert_array_equal(got, want)
     assert 0 < want.sum() < active.sum()  # the case holds landmarks on both sides
 
@@ -63,59 +69,62 @@ def test_may_take_part_under_vmap_equals_each_map_alone():
     rng = np.random.default_rng(1)
     params = _params()
     maps = [_random_map(rng) for _ in range(3)]
-    distance = np.stack([np.hypot(m[:, 0], m[:, 1]) for m, _, _ in maps])
-    cov = np.stack([c for _, c, _ in maps])
-    active = np.stack([a for _, _, a in maps])
-    got = jax.vmap(lambda d, s, a: landmarks.may_take_part(d, s, a, params, "loose"))(
-        jnp.asarray(distance), jnp.asarray(cov), jnp.asarray(active))
+    poses = rng.normal(0.0, 1.0, (3, 3))
+    mean, cov, active = (np.stack([m[i] for m in maps]) for i in range(3))
+    got = jax.vmap(lambda p, m, s, a: landmarks.may_take_part(p, m, s, a, params, "loose"))(
+        *(jnp.asarray(v) for v in (poses, mean, cov, active)))
     for i in range(3):
         np.testing.assert_array_equal(
-            np.asarray(got[i]), ref_may_take_part(distance[i], cov[i], active[i], params,
-                                                  "loose"))
+            np.asarray(got[i]), ref_may_take_part(poses[i], mean[i], cov[i], active[i],
+                                                  params, "loose"))
 
 
 def test_may_take_part_edges():
     params = _params()
     zero_cov = jnp.zeros((3, 3))
-    at_max = jnp.asarray([12.0, 12.0, 0.0])
+    origin = jnp.zeros(3)
+    ahead = lambda r: jnp.stack([jnp.asarray(r, jnp.float64), jnp.zeros(3)], -1)
     # hard: exactly at R_max takes part, inactive never does
     np.testing.assert_array_equal(
-        landmarks.may_take_part(at_max, zero_cov, jnp.asarray([True, False, True]), params,
-                                "hard"), [True, False, True])
+        landmarks.may_take_part(origin, ahead([12.0, 12.0, 1.0]), zero_cov,
+                                jnp.asarray([True, False, True]), params, "hard"),
+        [True, False, True])
     # loose with zero covariance: r <= 12 + a (0.01 r + 0.02), so the last r in is
-    # (12 + 0.02 a) / (1 - 0.01 a)
+    # (12 + 0.02 a) / (1 - 0.01 a); a landmark on the pose itself takes part
     a = float(params.airlock_sigmas)
     last = (12.0 + 0.02 * a) / (1.0 - 0.01 * a)
-    distance = jnp.asarray([0.999 * last, 1.001 * last, 0.0])
+    distance = [0.999 * last, 1.001 * last, 0.0]
     np.testing.assert_array_equal(
-        landmarks.may_take_part(distance, zero_cov, jnp.ones(3, bool), params, "loose"),
-        [True, False, True])
+        landmarks.may_take_part(origin, ahead(distance), zero_cov, jnp.ones(3, bool), params,
+                                "loose"), [True, False, True])
     with pytest.raises(ValueError, match="boundary"):
-        landmarks.may_take_part(distance, zero_cov, jnp.ones(3, bool), params, "soft")
+        landmarks.may_take_part(origin, ahead(distance), zero_cov, jnp.ones(3, bool), params,
+                                "soft")
 
 
 @pytest.mark.parametrize("boundary", ["hard", "loose"])
-def test_may_take_part_holds_every_landmark_the_visibility_rule_uses(boundary):
-    """The bound's claim: a landmark matchable or in the loose ring at some pose (from the
-    predicted measurement's S, ``landmarks.visibility``) is always in ``may_take_part``.
-    2,000 random landmarks and poses (fixed seed), covariances up to 0.25 m^2, ranges
-    around R_max."""
+def test_may_take_part_is_the_visibility_rules_own_region(boundary):
+    """A landmark is in ``may_take_part`` exactly when it is matchable or in the loose ring
+    by ``landmarks.visibility``'s own rule on the predicted measurement (its S_rr; ranges
+    over R_min here, so matchable is r <= R_max - w_m, or r <= R_max when hard). 2,000
+    random landmarks around R_max (fixed seed), covariances up to 0.5 m^2."""
     rng = np.random.default_rng(2)
     params = _params()
-    pose = jnp.asarray([0.3, -0.2, 0.7])
     mean, cov, _ = _random_map(rng, num=2000, spread=14.0)
     active = jnp.ones(2000, bool)
-    predicted = ekf.predict_measurements(pose, jnp.asarray(mean), jnp.asarray(cov), params)
+    mean, cov, pose = jnp.asarray(mean), jnp.asarray(cov), jnp.asarray(POSE)
+    predicted = ekf.predict_measurements(pose, mean, cov, params)
+    obs_z = jnp.asarray([[100.0, 0.0]])  # one observation no landmark could explain
+    vis = landmarks.visibility(obs_z, jnp.asarray([True]), active, predicted,
+                               jnp.full((1, 2000), jnp.inf), params, boundary)
     width = params.airlock_sigmas * jnp.sqrt(predicted.s_rr)
-    if boundary == "hard":
-        used = predicted.range <= params.max_range
-    else:
-        used = predicted.range <= params.max_range + width
-    bound = landmarks.may_take_part(predicted.range, jnp.asarray(cov), active, params,
-                                    boundary)
-    used, bound = np.asarray(used), np.asarray(bound)
+    ring = ((predicted.range > params.max_range - width)
+            & (predicted.range <= params.max_range + width))
+    used = np.asarray(vis.matchable | (ring if boundary == "loose" else False))
+    in_min_range = np.asarray(predicted.range >= params.min_range)
+    bound = np.asarray(landmarks.may_take_part(pose, mean, cov, active, params, boundary))
     assert used.sum() > 500  # enough landmarks in view to mean something
-    assert not np.any(used & ~bound)
+    np.testing.assert_array_equal(used, bound & in_min_range)
 
 
 def _line_of_trees(num_trees, steps=4):
