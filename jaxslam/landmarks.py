@@ -96,34 +96,59 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
                       matchable & may_be_missed)
 
 
-def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, boundary: str):
-    """(M,) bool: the active landmarks that take part in an association made at ``pose``,
-    found without predicting a bearing (the window's guard, ``StepInfo.window_cut``).
+def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, boundary: str,
+                  z=None, obs_valid=None, pose_cov=None):
+    """(M,) bool: a superset of the landmarks that take part in an association made at
+    ``pose``, found without predicting a bearing (the window's guard, ``StepInfo.window_cut``).
 
-    A landmark takes part when it is matchable (r <= R_max, or r <= R_max - w_m with the
-    loose boundary) or in the loose boundary's ring (r <= R_max + w_m, where it may set an
-    observation aside); see ``visibility``. With h the unit vector from the pose to the
-    landmark, S_rr = h^T Sigma_m h + sigma_r(r)^2, the range entry of ``ekf``'s innovation
-    covariance computed by the same functions, and w_m = a sqrt(S_rr), a = ``airlock_sigmas``:
+    With h the unit vector from the pose to landmark m at range r_m, S_rr = h^T Sigma_m h +
+    sigma_r(r_m)^2 (the range entry of ``ekf``'s innovation covariance, computed by the same
+    functions) and w_m = a sqrt(S_rr), a = ``airlock_sigmas``, a landmark takes part only in
+    the region of ``visibility``: matchable (r_m <= R_max; r_m <= R_max - w_m when loose) or,
+    loose, in the ring (r_m <= R_max + w_m, where it may set an observation aside):
 
-        hard:  r <= R_max
-        loose: r <= R_max + a sqrt(S_rr)
+        hard:  r_m <= R_max
+        loose: r_m <= R_max + w_m
+
+    Given the step's observations (``z`` (K, 2), ``obs_valid`` (K,); for the gated
+    associations, not ``known``), a landmark in that region takes part only if an
+    observation could gate with it or a miss could be counted against it. The squared
+    Mahalanobis distance is at least its range part, d2 >= (z_k,r - r_m)^2 / Z_rr, with
+    Z_rr = S_rr + h^T Sigma_xy h the range entry of the matching covariance (``pose_cov``
+    (3, 3) when the matching adds it; the heading enters the bearing only), and the trunk
+    radius only adds to d2; a miss needs r_m <= min(horizon, miss_range) (``visibility``).
+    So the landmark is kept when
+
+        min_k (z_k,r - r_m)^2 <= gate Z_rr   or   r_m <= min(horizon, miss_range).
 
     Args:
       pose: (3,); landmark_mean: (M, 2); landmark_cov: (M, 3) components (sxx, sxy, syy);
-      active: (M,) bool.
+      active: (M,) bool; z, obs_valid: None (the region alone) or the step's observations;
+      pose_cov: None or the (3, 3) pose covariance the matching adds.
     """
     dx = landmark_mean[:, 0] - pose[0]
     dy = landmark_mean[:, 1] - pose[1]
     range_ = jnp.hypot(dx, dy)
-    if boundary == "hard":
-        return active & (range_ <= params.max_range)
-    if boundary != "loose":
-        raise ValueError(f"boundary={boundary!r}; expected 'hard' or 'loose'")
     h00, h01, h10, h11 = range_bearing_jacobian_point(dx, dy)
     s_rr = sandwich(h00, h01, h10, h11, landmark_cov[:, 0], landmark_cov[:, 1],
                     landmark_cov[:, 2])[0] + measurement_std(range_, params)[0] ** 2
-    return active & (range_ <= params.max_range + params.airlock_sigmas * jnp.sqrt(s_rr))
+    if boundary == "hard":
+        region = range_ <= params.max_range
+    elif boundary == "loose":
+        region = range_ <= params.max_range + params.airlock_sigmas * jnp.sqrt(s_rr)
+    else:
+        raise ValueError(f"boundary={boundary!r}; expected 'hard' or 'loose'")
+    if z is None:
+        return active & region
+    z_rr = s_rr if pose_cov is None else s_rr + sandwich(
+        h00, h01, h10, h11, pose_cov[0, 0], pose_cov[0, 1], pose_cov[1, 1])[0]
+    gap_sq = jnp.min(jnp.where(obs_valid[:, None], jnp.square(z[:, :1] - range_[None, :]),
+                               jnp.inf), axis=0)
+    could_gate = gap_sq <= params.association_gate * z_rr
+    horizon = jnp.where(jnp.all(obs_valid), jnp.max(jnp.where(obs_valid, z[:, 0], 0.0)),
+                        jnp.inf)
+    could_miss = range_ <= jnp.minimum(horizon, params.miss_range)
+    return active & region & (could_gate | could_miss)
 
 
 def update_existence(existence, matched, missed, params: Params):

@@ -263,14 +263,16 @@ class Association(NamedTuple):
     window_cut: jnp.ndarray
 
 
-def _window(config: FilterConfig, params: Params, particle: Particles, pose):
+def _window(config: FilterConfig, params: Params, particle: Particles, pose, obs: Observations,
+            pose_cov=None):
     """The N = ``association_window`` active landmarks nearest ``pose`` (3,).
 
     Returns (slots (N,) int32, the particle restricted to them, cut () int32), or
     (None, particle, 0) when the window covers every slot: predictions and pair costs then
     cost O(K N) instead of O(K M). ``cut`` counts the landmarks outside the window that could
-    have taken part in the association (``landmarks.may_take_part``): while it is 0 the
-    window changes nothing but the order of the pairs.
+    have taken part in the association with these observations (``landmarks.may_take_part``;
+    for ``known`` ids the region alone): while it is 0 the window changes nothing but the
+    order of the pairs.
     """
     window = config.association_window
     if not 0 < window < config.max_landmarks:
@@ -285,8 +287,10 @@ def _window(config: FilterConfig, params: Params, particle: Particles, pose):
                               active=particle.active[slots],
                               landmark_id=particle.landmark_id[slots])
     outside = jnp.ones(config.max_landmarks, bool).at[slots].set(False)
+    gated = config.association != "known"  # known ids are matched whatever the distance
     in_view = landmarks.may_take_part(pose, particle.landmark_mean, particle.landmark_cov,
-                                      particle.active, params, config.boundary)
+                                      particle.active, params, config.boundary,
+                                      *((obs.z, obs.valid, pose_cov) if gated else ()))
     return slots, local, jnp.sum(in_view & outside).astype(jnp.int32)
 
 
@@ -313,7 +317,7 @@ def associate(config: FilterConfig, params: Params, particle: Particles, match_p
     nearer than R_max - w_k still cannot pair with a landmark beyond the ring, as
     ``landmarks`` states, whatever the pose covariance (``tests/test_matching_airlock.py``).
     """
-    slots, local, cut = _window(config, params, particle, match_pose)
+    slots, local, cut = _window(config, params, particle, match_pose, obs, pose_cov)
     predicted = ekf.predict_measurements(match_pose, local.landmark_mean, local.landmark_cov,
                                          params)
     local_predicted = (predicted if pose_cov is None

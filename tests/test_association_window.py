@@ -22,21 +22,38 @@ def _params(dtype=jnp.float64, **overrides):
     return jax.tree.map(lambda leaf: jnp.asarray(leaf, dtype), params)
 
 
-def ref_may_take_part(pose, mean, cov, active, params, boundary):
+def ref_may_take_part(pose, mean, cov, active, params, boundary, z=None, valid=None,
+                      pose_cov=None):
     """Plain NumPy float64: r <= R_max (hard); r <= R_max + a sqrt(S_rr) (loose), with
-    S_rr = h^T Sigma h + s_r(r)^2, h = (dx, dy) / r, s_r(r) = max(c_d r + c_0, floor)."""
+    S_rr = h^T Sigma h + s_r(r)^2, h = (dx, dy) / r, s_r(r) = max(c_d r + c_0, floor); with
+    observations also min_k (z_k,r - r)^2 <= gate (S_rr + h^T Sigma_xy h) or
+    r <= min(horizon, miss_range)."""
     pose, mean, cov = (np.asarray(v, np.float64) for v in (pose, mean, cov))
     dx, dy = mean[:, 0] - pose[0], mean[:, 1] - pose[1]
     distance = np.hypot(dx, dy)
     max_range = float(params.max_range)
-    if boundary == "hard":
-        return np.asarray(active) & (distance <= max_range)
     hx, hy = dx / distance, dy / distance
     slope, const = (float(v) for v in np.asarray(params.range_noise))
     sigma = np.maximum(slope * distance + const, float(params.range_std_floor))
     s_rr = hx * hx * cov[:, 0] + 2 * hx * hy * cov[:, 1] + hy * hy * cov[:, 2] + sigma**2
-    return np.asarray(active) & (distance <= max_range + float(params.airlock_sigmas)
-                                 * np.sqrt(s_rr))
+    if boundary == "hard":
+        keep = np.asarray(active) & (distance <= max_range)
+    else:
+        keep = np.asarray(active) & (distance <= max_range + float(params.airlock_sigmas)
+                                     * np.sqrt(s_rr))
+    if z is None:
+        return keep
+    z, valid = np.asarray(z, np.float64), np.asarray(valid)
+    z_rr = s_rr.copy()
+    if pose_cov is not None:
+        c = np.asarray(pose_cov, np.float64)
+        z_rr += hx * hx * c[0, 0] + 2 * hx * hy * c[0, 1] + hy * hy * c[1, 1]
+    gate = float(params.association_gate)
+    could_gate = np.array([any(valid[k] and (z[k, 0] - r) ** 2 <= gate * zr
+                               for k in range(len(z))) for r, zr in zip(distance, z_rr)])
+    horizon = z[valid, 0].max() if valid.all() else np.inf
+    could_miss = distance <= min(horizon, float(params.miss_range))
+    return keep & (could_gate | could_miss)
 
 
 def _random_map(rng, num=40, spread=15.0):
@@ -77,6 +94,83 @@ def test_may_take_part_under_vmap_equals_each_map_alone():
         np.testing.assert_array_equal(
             np.asarray(got[i]), ref_may_take_part(poses[i], mean[i], cov[i], active[i],
                                                   params, "loose"))
+
+
+@pytest.mark.parametrize("saturated", [False, True])
+@pytest.mark.parametrize("with_pose_cov", [False, True])
+@pytest.mark.parametrize("jit", [False, True])
+def test_may_take_part_with_observations_matches_the_numpy_reference(saturated, with_pose_cov,
+                                                                     jit):
+    rng = np.random.default_rng(3)
+    params = _params(miss_range=9.0)
+    mean, cov, active = _random_map(rng)
+    z = np.stack([rng.uniform(1.0, 12.0, 8), rng.uniform(-np.pi, np.pi, 8)], -1)
+    valid = np.ones(8, bool) if saturated else rng.random(8) < 0.6
+    pose_cov = np.diag([0.04, 0.09, 0.01]) + 0.01 if with_pose_cov else None
+    fn = lambda p, m, s, a, zz, v: landmarks.may_take_part(
+        p, m, s, a, params, "loose", zz, v, None if pose_cov is None else jnp.asarray(pose_cov))
+    fn = jax.jit(fn) if jit else fn
+    got = np.asarray(fn(*(jnp.asarray(v) for v in (POSE, mean, cov, active, z, valid))))
+    want = ref_may_take_part(POSE, mean, cov, active, params, "loose", z, valid, pose_cov)
+    np.testing.assert_array_equal(got, want)
+    region = ref_may_take_part(POSE, mean, cov, active, params, "loose")
+    assert 0 < want.sum() < region.sum()  # the observations leave some of the region out
+
+
+@pytest.mark.parametrize("boundary", ["hard", "loose"])
+@pytest.mark.parametrize("with_pose_cov", [False, True])
+def test_every_landmark_the_association_uses_is_kept(boundary, with_pose_cov):
+    """The guard's claim, checked on the full association (no window): over 200 random
+    maps, poses and observation sets (fixed seed; some observations right at a landmark,
+    some at random, some steps with all rows valid), every landmark that is matched, counted
+    as a miss or, in the loose ring, sets an observation aside is in ``may_take_part``."""
+    rng = np.random.default_rng(4)
+    config = FilterConfig(num_particles=1, max_landmarks=30, max_obs=6, boundary=boundary)
+    params = _params(max_range=10.0, miss_range=8.0)
+    from jaxslam.step_propose import associate
+    from mapped_state import mapped_state
+
+    used_total = 0
+    for trial in range(200):
+        mean, cov, active = _random_map(rng, num=30, spread=12.0)
+        state = mapped_state(config, mean, variance=0.01)
+        particle = jax.tree.map(lambda a: a[0].astype(jnp.float64) if a.dtype.kind == "f"
+                                else a[0], state.particles)
+        particle = particle._replace(landmark_cov=jnp.asarray(cov, particle.landmark_cov.dtype),
+                                     active=jnp.asarray(active))
+        pose = jnp.asarray(rng.normal(0.0, 1.0, 3))
+        targets = mean[rng.integers(0, 30, 6)] + rng.normal(0.0, 0.2, (6, 2))
+        delta = targets - np.asarray(pose[:2])
+        z = np.stack([np.hypot(*delta.T), np.arctan2(delta[:, 1], delta[:, 0]) - float(pose[2])],
+                     -1)
+        z[3:] = np.stack([rng.uniform(0.5, 11.0, 3), rng.uniform(-3.0, 3.0, 3)], -1)
+        z[:, 1] = np.angle(np.exp(1j * z[:, 1]))
+        valid = np.ones(6, bool) if trial % 3 == 0 else rng.random(6) < 0.7
+        obs = jaxslam.Observations(jnp.asarray(z, particle.pose.dtype), jnp.asarray(valid),
+                                   jnp.zeros(6, particle.pose.dtype), jnp.full(6, -1, jnp.int32))
+        pose_cov = (jnp.asarray(np.diag([0.05, 0.05, 0.02]), particle.pose.dtype)
+                    if with_pose_cov else None)
+        found = associate(config, params, particle, pose, obs, pose_cov)
+        matched = np.zeros(30, bool)
+        matched[np.asarray(found.match)[np.asarray(found.match) >= 0]] = True
+        # A ring landmark that gates with an observation sets it aside (``visibility``);
+        # ``explained`` matters only for expected landmarks, which are counted already.
+        predicted = ekf.predict_measurements(pose, particle.landmark_mean,
+                                             particle.landmark_cov, params)
+        width = params.airlock_sigmas * jnp.sqrt(predicted.s_rr)
+        ring = (particle.active & (predicted.range > params.max_range - width)
+                & (predicted.range <= params.max_range + width))
+        gated = jnp.any(obs.valid[:, None] & (ekf.mahalanobis_sq(obs.z, predicted)
+                                              <= params.association_gate), axis=0)
+        sets_aside = np.asarray(ring & gated) if boundary == "loose" else False
+        used = matched | np.asarray(found.visibility.expected) | sets_aside
+        kept = np.asarray(landmarks.may_take_part(pose, particle.landmark_mean,
+                                                  particle.landmark_cov, particle.active,
+                                                  params, boundary, obs.z, obs.valid,
+                                                  pose_cov))
+        assert not np.any(used & ~kept), trial
+        used_total += used.sum()
+    assert used_total > 400  # the trials used landmarks often enough to mean something
 
 
 def test_may_take_part_edges():

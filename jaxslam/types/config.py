@@ -55,6 +55,10 @@ class FilterConfig:
         against each particle's N nearest active landmarks (by predicted range). Landmarks
         outside the window are neither matched nor penalised, so choose N above the number of
         trees the sensor can see at once. Cuts the (K, M) pair work to (K, N) for large maps.
+        ``StepInfo.window_cut`` / ``Trace.window_cut`` count the landmarks the window left out
+        although they could have taken part (``landmarks.may_take_part``), and the run
+        warnings say so: while the count stays 0 the window gives the full association's
+        result.
       max_match_rounds: bound on Gale-Shapley rounds; 0 means K * (M + 1), a bound that is
         never reached (each round either forms a proposal or exhausts an observation's list),
         so a matching is never cut short; the rounds actually used are in ``info``.
