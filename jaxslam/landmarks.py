@@ -112,14 +112,18 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
 
     Given the step's observations (``z`` (K, 2), ``obs_valid`` (K,); for the gated
     associations, not ``known``), a landmark in that region takes part only if an
-    observation could gate with it or a miss could be counted against it. The squared
-    Mahalanobis distance is at least its range part, d2 >= (z_k,r - r_m)^2 / Z_rr, with
-    Z_rr = S_rr + h^T Sigma_xy h the range entry of the matching covariance (``pose_cov``
-    (3, 3) when the matching adds it; the heading enters the bearing only), and the trunk
-    radius only adds to d2; a miss needs r_m <= min(horizon, miss_range) (``visibility``).
-    So the landmark is kept when
+    observation could gate with it or a miss could be counted against it. Let Z be the
+    matching covariance (S plus, when the matching adds ``pose_cov`` (3, 3),
+    Hx Sigma_u Hx^T as in ``ekf.add_pose_uncertainty``; the trunk radius only adds to d2).
+    The squared Mahalanobis distance bounds each component, d2 >= nu_r^2 / Z_rr and
+    d2 >= nu_b^2 / Z_bb, and with p_k the observation's point in the world frame,
 
-        min_k (z_k,r - r_m)^2 <= gate Z_rr   or   r_m <= min(horizon, miss_range).
+        |p_k - m|^2 = nu_r^2 + 2 z_k,r r_m (1 - cos nu_b) <= nu_r^2 + z_k,r r_m nu_b^2,
+
+    so a pair within the gate g has nu_r^2 <= g Z_rr and |p_k - m|^2 <= g (Z_rr +
+    z_k,r r_m Z_bb): no bearing of a landmark is predicted, only the K observations' points.
+    A miss needs r_m <= min(horizon, miss_range) (``visibility``). The landmark is kept when
+    some valid observation passes both pair tests, or a miss is possible.
 
     Args:
       pose: (3,); landmark_mean: (M, 2); landmark_cov: (M, 3) components (sxx, sxy, syy);
@@ -130,8 +134,10 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
     dy = landmark_mean[:, 1] - pose[1]
     range_ = jnp.hypot(dx, dy)
     h00, h01, h10, h11 = range_bearing_jacobian_point(dx, dy)
-    s_rr = sandwich(h00, h01, h10, h11, landmark_cov[:, 0], landmark_cov[:, 1],
-                    landmark_cov[:, 2])[0] + measurement_std(range_, params)[0] ** 2
+    map_rr, _, map_bb = sandwich(h00, h01, h10, h11, landmark_cov[:, 0], landmark_cov[:, 1],
+                                 landmark_cov[:, 2])
+    sigma_range, sigma_bearing = measurement_std(range_, params)
+    s_rr = map_rr + sigma_range**2
     if boundary == "hard":
         region = range_ <= params.max_range
     elif boundary == "loose":
@@ -140,11 +146,24 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
         raise ValueError(f"boundary={boundary!r}; expected 'hard' or 'loose'")
     if z is None:
         return active & region
-    z_rr = s_rr if pose_cov is None else s_rr + sandwich(
-        h00, h01, h10, h11, pose_cov[0, 0], pose_cov[0, 1], pose_cov[1, 1])[0]
-    gap_sq = jnp.min(jnp.where(obs_valid[:, None], jnp.square(z[:, :1] - range_[None, :]),
-                               jnp.inf), axis=0)
-    could_gate = gap_sq <= params.association_gate * z_rr
+    s_bb = map_bb + sigma_bearing**2
+    if pose_cov is None:
+        z_rr, z_bb = s_rr, s_bb
+    else:
+        xy_rr, _, xy_bb = sandwich(h00, h01, h10, h11, pose_cov[0, 0], pose_cov[0, 1],
+                                   pose_cov[1, 1])
+        tilt = h10 * pose_cov[0, 2] + h11 * pose_cov[1, 2]
+        z_rr, z_bb = s_rr + xy_rr, s_bb + xy_bb + 2.0 * tilt + pose_cov[2, 2]
+    gate = params.association_gate
+    heading = pose[2] + z[:, 1]
+    point_x = pose[0] + z[:, 0] * jnp.cos(heading)                              # (K,)
+    point_y = pose[1] + z[:, 0] * jnp.sin(heading)
+    apart_sq = (jnp.square(point_x[:, None] - landmark_mean[None, :, 0])
+                + jnp.square(point_y[:, None] - landmark_mean[None, :, 1]))     # (K, M)
+    pair = (obs_valid[:, None]
+            & (jnp.square(z[:, :1] - range_[None, :]) <= gate * z_rr[None, :])
+            & (apart_sq <= gate * (z_rr[None, :] + z[:, :1] * range_[None, :] * z_bb[None, :])))
+    could_gate = jnp.any(pair, axis=0)
     horizon = jnp.where(jnp.all(obs_valid), jnp.max(jnp.where(obs_valid, z[:, 0], 0.0)),
                         jnp.inf)
     could_miss = range_ <= jnp.minimum(horizon, params.miss_range)

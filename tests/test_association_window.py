@@ -26,7 +26,8 @@ def ref_may_take_part(pose, mean, cov, active, params, boundary, z=None, valid=N
                       pose_cov=None):
     """Plain NumPy float64: r <= R_max (hard); r <= R_max + a sqrt(S_rr) (loose), with
     S_rr = h^T Sigma h + s_r(r)^2, h = (dx, dy) / r, s_r(r) = max(c_d r + c_0, floor); with
-    observations also min_k (z_k,r - r)^2 <= gate (S_rr + h^T Sigma_xy h) or
+    observations also, for some valid k, (z_k,r - r)^2 <= g Z_rr and
+    |p_k - m|^2 <= g (Z_rr + z_k,r r Z_bb) (Z: S plus Hx Sigma_u Hx^T), or
     r <= min(horizon, miss_range)."""
     pose, mean, cov = (np.asarray(v, np.float64) for v in (pose, mean, cov))
     dx, dy = mean[:, 0] - pose[0], mean[:, 1] - pose[1]
@@ -44,13 +45,28 @@ def ref_may_take_part(pose, mean, cov, active, params, boundary, z=None, valid=N
     if z is None:
         return keep
     z, valid = np.asarray(z, np.float64), np.asarray(valid)
+    bx, by = -dy / distance**2, dx / distance**2  # the bearing's landmark Jacobian
+    sigma_b = np.maximum(float(np.asarray(params.bearing_noise)[0]) * distance
+                         + float(np.asarray(params.bearing_noise)[1]),
+                         float(params.bearing_std_floor))
     z_rr = s_rr.copy()
-    if pose_cov is not None:
+    z_bb = bx * bx * cov[:, 0] + 2 * bx * by * cov[:, 1] + by * by * cov[:, 2] + sigma_b**2
+    if pose_cov is not None:  # Hx = [-H, (0, -1)^T] for the pose (x, y, theta)
         c = np.asarray(pose_cov, np.float64)
-        z_rr += hx * hx * c[0, 0] + 2 * hx * hy * c[0, 1] + hy * hy * c[1, 1]
+        for k, (jr, jb) in enumerate(zip(np.stack([-hx, -hy, 0 * hx], -1),
+                                         np.stack([-bx, -by, -np.ones_like(bx)], -1))):
+            z_rr[k] += jr @ c @ jr
+            z_bb[k] += jb @ c @ jb
     gate = float(params.association_gate)
-    could_gate = np.array([any(valid[k] and (z[k, 0] - r) ** 2 <= gate * zr
-                               for k in range(len(z))) for r, zr in zip(distance, z_rr)])
+    could_gate = np.zeros(len(distance), bool)
+    for k in range(len(z)):
+        if not valid[k]:
+            continue
+        point = pose[:2] + z[k, 0] * np.array([np.cos(pose[2] + z[k, 1]),
+                                               np.sin(pose[2] + z[k, 1])])
+        apart_sq = np.sum((point - mean) ** 2, axis=1)
+        could_gate |= (((z[k, 0] - distance) ** 2 <= gate * z_rr)
+                       & (apart_sq <= gate * (z_rr + z[k, 0] * distance * z_bb)))
     horizon = z[valid, 0].max() if valid.all() else np.inf
     could_miss = distance <= min(horizon, float(params.miss_range))
     return keep & (could_gate | could_miss)
