@@ -112,18 +112,18 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
 
     Given the step's observations (``z`` (K, 2), ``obs_valid`` (K,); for the gated
     associations, not ``known``), a landmark in that region takes part only if an
-    observation could gate with it or a miss could be counted against it. Let Z be the
-    matching covariance (S plus, when the matching adds ``pose_cov`` (3, 3),
-    Hx Sigma_u Hx^T as in ``ekf.add_pose_uncertainty``; the trunk radius only adds to d2).
-    The squared Mahalanobis distance bounds each component, d2 >= nu_r^2 / Z_rr and
-    d2 >= nu_b^2 / Z_bb, and with p_k the observation's point in the world frame,
+    observation could gate with it or a miss could be counted against it. With Z_rr the
+    range entry of the matching covariance (S_rr plus h^T Sigma_xy h when the matching adds
+    ``pose_cov`` (3, 3), as in ``ekf.add_pose_uncertainty``; the heading enters the bearing
+    only), d2 >= (z_k,r - r_m)^2 / Z_rr (the trunk radius only adds to d2), so no
+    observation gates with a landmark farther than the farthest valid observation z_max by
+    more than sqrt(g Z_rr), g the gate; a miss needs r_m <= min(horizon, miss_range)
+    (``visibility``). The landmark is kept when
 
-        |p_k - m|^2 = nu_r^2 + 2 z_k,r r_m (1 - cos nu_b) <= nu_r^2 + z_k,r r_m nu_b^2,
+        r_m <= z_max + sqrt(g Z_rr)   or   r_m <= min(horizon, miss_range).
 
-    so a pair within the gate g has nu_r^2 <= g Z_rr and |p_k - m|^2 <= g (Z_rr +
-    z_k,r r_m Z_bb): no bearing of a landmark is predicted, only the K observations' points.
-    A miss needs r_m <= min(horizon, miss_range) (``visibility``). The landmark is kept when
-    some valid observation passes both pair tests, or a miss is possible.
+    This costs O(M), so it is loose for landmarks nearer than z_max (kept) but catches the
+    usual case: a saturated sensor (its K nearest trunks) leaves the trees behind them out.
 
     Args:
       pose: (3,); landmark_mean: (M, 2); landmark_cov: (M, 3) components (sxx, sxy, syy);
@@ -134,10 +134,8 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
     dy = landmark_mean[:, 1] - pose[1]
     range_ = jnp.hypot(dx, dy)
     h00, h01, h10, h11 = range_bearing_jacobian_point(dx, dy)
-    map_rr, _, map_bb = sandwich(h00, h01, h10, h11, landmark_cov[:, 0], landmark_cov[:, 1],
-                                 landmark_cov[:, 2])
-    sigma_range, sigma_bearing = measurement_std(range_, params)
-    s_rr = map_rr + sigma_range**2
+    s_rr = sandwich(h00, h01, h10, h11, landmark_cov[:, 0], landmark_cov[:, 1],
+                    landmark_cov[:, 2])[0] + measurement_std(range_, params)[0] ** 2
     if boundary == "hard":
         region = range_ <= params.max_range
     elif boundary == "loose":
@@ -146,24 +144,10 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
         raise ValueError(f"boundary={boundary!r}; expected 'hard' or 'loose'")
     if z is None:
         return active & region
-    s_bb = map_bb + sigma_bearing**2
-    if pose_cov is None:
-        z_rr, z_bb = s_rr, s_bb
-    else:
-        xy_rr, _, xy_bb = sandwich(h00, h01, h10, h11, pose_cov[0, 0], pose_cov[0, 1],
-                                   pose_cov[1, 1])
-        tilt = h10 * pose_cov[0, 2] + h11 * pose_cov[1, 2]
-        z_rr, z_bb = s_rr + xy_rr, s_bb + xy_bb + 2.0 * tilt + pose_cov[2, 2]
-    gate = params.association_gate
-    heading = pose[2] + z[:, 1]
-    point_x = pose[0] + z[:, 0] * jnp.cos(heading)                              # (K,)
-    point_y = pose[1] + z[:, 0] * jnp.sin(heading)
-    apart_sq = (jnp.square(point_x[:, None] - landmark_mean[None, :, 0])
-                + jnp.square(point_y[:, None] - landmark_mean[None, :, 1]))     # (K, M)
-    pair = (obs_valid[:, None]
-            & (jnp.square(z[:, :1] - range_[None, :]) <= gate * z_rr[None, :])
-            & (apart_sq <= gate * (z_rr[None, :] + z[:, :1] * range_[None, :] * z_bb[None, :])))
-    could_gate = jnp.any(pair, axis=0)
+    z_rr = s_rr if pose_cov is None else s_rr + sandwich(
+        h00, h01, h10, h11, pose_cov[0, 0], pose_cov[0, 1], pose_cov[1, 1])[0]
+    farthest = jnp.max(jnp.where(obs_valid, z[:, 0], -jnp.inf))
+    could_gate = range_ <= farthest + jnp.sqrt(params.association_gate * z_rr)
     horizon = jnp.where(jnp.all(obs_valid), jnp.max(jnp.where(obs_valid, z[:, 0], 0.0)),
                         jnp.inf)
     could_miss = range_ <= jnp.minimum(horizon, params.miss_range)

@@ -26,9 +26,8 @@ def ref_may_take_part(pose, mean, cov, active, params, boundary, z=None, valid=N
                       pose_cov=None):
     """Plain NumPy float64: r <= R_max (hard); r <= R_max + a sqrt(S_rr) (loose), with
     S_rr = h^T Sigma h + s_r(r)^2, h = (dx, dy) / r, s_r(r) = max(c_d r + c_0, floor); with
-    observations also, for some valid k, (z_k,r - r)^2 <= g Z_rr and
-    |p_k - m|^2 <= g (Z_rr + z_k,r r Z_bb) (Z: S plus Hx Sigma_u Hx^T), or
-    r <= min(horizon, miss_range)."""
+    observations also r <= z_max + sqrt(g Z_rr) (Z_rr = S_rr + h^T Sigma_xy h, z_max the
+    farthest valid observation) or r <= min(horizon, miss_range)."""
     pose, mean, cov = (np.asarray(v, np.float64) for v in (pose, mean, cov))
     dx, dy = mean[:, 0] - pose[0], mean[:, 1] - pose[1]
     distance = np.hypot(dx, dy)
@@ -45,28 +44,12 @@ def ref_may_take_part(pose, mean, cov, active, params, boundary, z=None, valid=N
     if z is None:
         return keep
     z, valid = np.asarray(z, np.float64), np.asarray(valid)
-    bx, by = -dy / distance**2, dx / distance**2  # the bearing's landmark Jacobian
-    sigma_b = np.maximum(float(np.asarray(params.bearing_noise)[0]) * distance
-                         + float(np.asarray(params.bearing_noise)[1]),
-                         float(params.bearing_std_floor))
     z_rr = s_rr.copy()
-    z_bb = bx * bx * cov[:, 0] + 2 * bx * by * cov[:, 1] + by * by * cov[:, 2] + sigma_b**2
-    if pose_cov is not None:  # Hx = [-H, (0, -1)^T] for the pose (x, y, theta)
+    if pose_cov is not None:  # the range row of Hx is (-h, 0) for the pose (x, y, theta)
         c = np.asarray(pose_cov, np.float64)
-        for k, (jr, jb) in enumerate(zip(np.stack([-hx, -hy, 0 * hx], -1),
-                                         np.stack([-bx, -by, -np.ones_like(bx)], -1))):
-            z_rr[k] += jr @ c @ jr
-            z_bb[k] += jb @ c @ jb
-    gate = float(params.association_gate)
-    could_gate = np.zeros(len(distance), bool)
-    for k in range(len(z)):
-        if not valid[k]:
-            continue
-        point = pose[:2] + z[k, 0] * np.array([np.cos(pose[2] + z[k, 1]),
-                                               np.sin(pose[2] + z[k, 1])])
-        apart_sq = np.sum((point - mean) ** 2, axis=1)
-        could_gate |= (((z[k, 0] - distance) ** 2 <= gate * z_rr)
-                       & (apart_sq <= gate * (z_rr + z[k, 0] * distance * z_bb)))
+        z_rr += hx * hx * c[0, 0] + 2 * hx * hy * c[0, 1] + hy * hy * c[1, 1]
+    farthest = z[valid, 0].max() if valid.any() else -np.inf
+    could_gate = distance <= farthest + np.sqrt(float(params.association_gate) * z_rr)
     horizon = z[valid, 0].max() if valid.all() else np.inf
     could_miss = distance <= min(horizon, float(params.miss_range))
     return keep & (could_gate | could_miss)
@@ -131,6 +114,29 @@ def test_may_take_part_with_observations_matches_the_numpy_reference(saturated, 
     np.testing.assert_array_equal(got, want)
     region = ref_may_take_part(POSE, mean, cov, active, params, "loose")
     assert 0 < want.sum() < region.sum()  # the observations leave some of the region out
+
+
+def test_may_take_part_with_observations_edges():
+    """No valid observation: only a possible miss keeps a landmark (r <= miss_range). A
+    saturated sensor (every row valid, farthest 6 m): a landmark 1 cm beyond
+    6 m + sqrt(g S_rr) is left out, one 1 cm inside is kept, though both are within R_max."""
+    params = _params(miss_range=9.0)
+    zero_cov, origin = jnp.zeros((4, 3)), jnp.zeros(3)
+    ranges = jnp.asarray([3.0, 8.5, 9.5, 11.0])
+    ahead = lambda r: jnp.stack([jnp.asarray(r, jnp.float64), jnp.zeros(len(r))], -1)
+    z = jnp.asarray([[6.0, 0.5], [2.0, -0.5]])
+    kept = landmarks.may_take_part(origin, ahead(ranges), zero_cov, jnp.ones(4, bool), params,
+                                   "loose", z, jnp.asarray([False, False]))
+    np.testing.assert_array_equal(kept, [True, True, False, False])
+    def saturated(r):
+        return bool(landmarks.may_take_part(origin, ahead([r]), zero_cov[:1],
+                                            jnp.ones(1, bool), params, "loose", z,
+                                            jnp.asarray([True, True]))[0])
+    # the margin uses the landmark's own S_rr (zero covariance: sigma_r(r)^2) and the gate
+    # 25: the last range kept solves r = 6 + 5 (0.01 r + 0.02)
+    assert float(params.association_gate) == 25.0
+    last = (6.0 + 5 * 0.02) / (1.0 - 5 * 0.01)
+    assert saturated(last - 0.01) and not saturated(last + 0.01)
 
 
 @pytest.mark.parametrize("boundary", ["hard", "loose"])
