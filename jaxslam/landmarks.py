@@ -96,6 +96,9 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
                       matchable & may_be_missed)
 
 
+SLACK = 1e-4  # relative widening of may_take_part's range margin, for rounding
+
+
 def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, boundary: str,
                   z=None, obs_valid=None, pose_cov=None):
     """(M,) bool: a superset of the landmarks that take part in an association made at
@@ -124,6 +127,8 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
 
     This costs O(M), so it is loose for landmarks nearer than z_max (kept) but catches the
     usual case: a saturated sensor (its K nearest trunks) leaves the trees behind them out.
+    The margin is widened by ``SLACK`` (relative) so that rounding in the association's own
+    d2 (float32) cannot put a pair inside the gate that the bound left out.
 
     Args:
       pose: (3,); landmark_mean: (M, 2); landmark_cov: (M, 3) components (sxx, sxy, syy);
@@ -147,7 +152,7 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
     z_rr = s_rr if pose_cov is None else s_rr + sandwich(
         h00, h01, h10, h11, pose_cov[0, 0], pose_cov[0, 1], pose_cov[1, 1])[0]
     farthest = jnp.max(jnp.where(obs_valid, z[:, 0], -jnp.inf))
-    could_gate = range_ <= farthest + jnp.sqrt(params.association_gate * z_rr)
+    could_gate = range_ <= farthest + (1.0 + SLACK) * jnp.sqrt(params.association_gate * z_rr)
     horizon = jnp.where(jnp.all(obs_valid), jnp.max(jnp.where(obs_valid, z[:, 0], 0.0)),
                         jnp.inf)
     could_miss = range_ <= jnp.minimum(horizon, params.miss_range)

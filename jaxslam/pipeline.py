@@ -98,8 +98,9 @@ def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int
                    "probably too small, or use more particles or the mixture proposal")
     cut = None if trace.window_cut is None else np.asarray(trace.window_cut)
     if cut is not None and cut.any():
-        out.append(f"the association window left out landmarks that could have been matched "
-                   f"in {int(np.sum(cut > 0))} steps (up to {int(cut.max())} in one step); "
+        out.append(f"the association window left out landmarks that could have taken part in "
+                   f"the association (matched or penalised) in {int(np.sum(cut > 0))} steps "
+                   f"(up to {int(cut.max())} in one step); "
                    "raise filter.association_window above the landmarks in view, or set it "
                    "to 0")
     resets = int(np.sum(np.asarray(trace.weights_reset)))

@@ -49,7 +49,8 @@ def ref_may_take_part(pose, mean, cov, active, params, boundary, z=None, valid=N
         c = np.asarray(pose_cov, np.float64)
         z_rr += hx * hx * c[0, 0] + 2 * hx * hy * c[0, 1] + hy * hy * c[1, 1]
     farthest = z[valid, 0].max() if valid.any() else -np.inf
-    could_gate = distance <= farthest + np.sqrt(float(params.association_gate) * z_rr)
+    could_gate = distance <= farthest + (1 + landmarks.SLACK) * np.sqrt(
+        float(params.association_gate) * z_rr)
     horizon = z[valid, 0].max() if valid.all() else np.inf
     could_miss = distance <= min(horizon, float(params.miss_range))
     return keep & (could_gate | could_miss)
@@ -135,7 +136,8 @@ def test_may_take_part_with_observations_edges():
     # the margin uses the landmark's own S_rr (zero covariance: sigma_r(r)^2) and the gate
     # 25: the last range kept solves r = 6 + 5 (0.01 r + 0.02)
     assert float(params.association_gate) == 25.0
-    last = (6.0 + 5 * 0.02) / (1.0 - 5 * 0.01)
+    a = 5.0 * (1.0 + landmarks.SLACK)
+    last = (6.0 + a * 0.02) / (1.0 - a * 0.01)
     assert saturated(last - 0.01) and not saturated(last + 0.01)
 
 
@@ -241,6 +243,68 @@ def test_may_take_part_is_the_visibility_rules_own_region(boundary):
     bound = np.asarray(landmarks.may_take_part(pose, mean, cov, active, params, boundary))
     assert used.sum() > 500  # enough landmarks in view to mean something
     np.testing.assert_array_equal(used, bound & in_min_range)
+
+
+@pytest.mark.parametrize("kind", ["stable", "greedy", "hungarian"])
+@pytest.mark.parametrize("boundary", ["hard", "loose"])
+@pytest.mark.parametrize("with_pose_cov", [False, True])
+def test_a_window_whose_cut_is_zero_associates_as_the_full_map(kind, boundary, with_pose_cov):
+    """The claim the count stands for: 300 random maps of 40 landmarks, poses and 8
+    observations (fixed seed; half of them at landmarks, every third trial saturated),
+    associated with a window of 20 and with none. Where the window's cut is 0, the matches,
+    the usable and set-aside observations and the landmarks penalised (expected and not
+    explained) are identical; such trials must include landmarks outside the window."""
+    rng = np.random.default_rng(5)
+    trials, slots, rows, window = 300, 40, 8, 20
+    params = _params(max_range=10.0, miss_range=8.0)
+    mean = rng.uniform(-12.0, 12.0, (trials, slots, 2))
+    a, c = rng.uniform(0.0, 0.4, (2, trials, slots)) ** 2
+    cov = np.stack([a, rng.uniform(-1, 1, (trials, slots)) * np.sqrt(a * c), c], -1)
+    active = rng.random((trials, slots)) < 0.8
+    pose = rng.normal(0.0, 1.0, (trials, 3))
+    pick = mean[np.arange(trials)[:, None], rng.integers(0, slots, (trials, rows))]
+    targets = np.where(np.arange(rows)[None, :, None] < rows // 2,
+                       pick + rng.normal(0.0, 0.15, pick.shape),
+                       pose[:, None, :2] + rng.uniform(-11.0, 11.0, pick.shape))
+    delta = targets - pose[:, None, :2]
+    z = np.stack([np.hypot(delta[..., 0], delta[..., 1]),
+                  np.angle(np.exp(1j * (np.arctan2(delta[..., 1], delta[..., 0])
+                                        - pose[:, 2:3])))], -1)
+    valid = (rng.random((trials, rows)) < 0.7) | (np.arange(trials) % 3 == 0)[:, None]
+    pose_cov = np.diag([0.05, 0.05, 0.02]) if with_pose_cov else None
+    from jaxslam.step_propose import associate
+    from mapped_state import mapped_state
+
+    def run(window):
+        config = FilterConfig(num_particles=1, max_landmarks=slots, max_obs=rows,
+                              boundary=boundary, association=kind,
+                              association_window=window)
+        base = jax.tree.map(lambda leaf: leaf[0].astype(jnp.float64)
+                            if leaf.dtype.kind == "f" else leaf[0],
+                            mapped_state(config, np.zeros((slots, 2))).particles)
+
+        def one(mean, cov, active, pose, z, valid):
+            particle = base._replace(landmark_mean=mean, landmark_cov=cov, active=active)
+            obs = jaxslam.Observations(z, valid, jnp.zeros(rows), jnp.full(rows, -1, jnp.int32))
+            found = associate(config, params, particle, pose, obs,
+                              None if pose_cov is None else jnp.asarray(pose_cov))
+            vis = found.visibility
+            return (found.match, vis.usable_obs, vis.set_aside_obs,
+                    vis.expected & ~vis.explained, found.window_cut)
+
+        return jax.jit(jax.vmap(one))(*(jnp.asarray(v) for v in (mean, cov, active, pose, z,
+                                                                  valid)))
+
+    full, windowed = run(0), run(window)
+    cut = np.asarray(windowed[-1])
+    assert np.all(np.asarray(full[-1]) == 0)
+    exact = cut == 0
+    outside = active.sum(axis=1) > window
+    assert np.sum(exact & outside) >= 30, (np.sum(exact & outside))  # not a vacuous check
+    assert np.sum(~exact) >= 10  # and the guard does fire on small windows' trials
+    for name, f, w in zip(("match", "usable", "set aside", "penalised"), full, windowed):
+        np.testing.assert_array_equal(np.asarray(f)[exact], np.asarray(w)[exact],
+                                      err_msg=name)
 
 
 def _line_of_trees(num_trees, steps=4):
