@@ -88,7 +88,8 @@ class StepInfo(NamedTuple):
       kept (module docstring), and ``mixture_ratio`` is 0 for the step.
     window_cut: () int32 the most landmarks any particle's ``association_window`` left out
       although they could have taken part in its association (``landmarks.may_take_part``);
-      0 without a window. While it stays 0 the window gives the full association's result.
+      0 without a window. While it stays 0 the window gives the full association's matches,
+      set-asides and misses (up to exactly equal pair costs).
     """
 
     ess: jnp.ndarray
@@ -154,7 +155,8 @@ class Trace(NamedTuple):
     (``StepInfo.log_evidence``; its sum is the log marginal likelihood estimate);
     invalid_control (T,) bool, ``StepInfo.invalid_control`` (``trace.invalid_control.sum()``
     is the number of masked control rows of the run); window_cut (T,) int32,
-    ``StepInfo.window_cut`` (all 0: the association window never changed the result).
+    ``StepInfo.window_cut`` (all 0: the association window changed no match, set-aside or
+    miss).
     """
 
     mean_pose: jnp.ndarray
