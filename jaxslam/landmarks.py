@@ -153,8 +153,7 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
         h00, h01, h10, h11, pose_cov[0, 0], pose_cov[0, 1], pose_cov[1, 1])[0]
     farthest = jnp.max(jnp.where(obs_valid, z[:, 0], -jnp.inf))
     could_gate = range_ <= farthest + (1.0 + SLACK) * jnp.sqrt(params.association_gate * z_rr)
-    horizon = jnp.where(jnp.all(obs_valid), jnp.max(jnp.where(obs_valid, z[:, 0], 0.0)),
-                        jnp.inf)
+    horizon = jnp.where(jnp.all(obs_valid), farthest, jnp.inf)  # visibility's horizon
     could_miss = range_ <= jnp.minimum(horizon, params.miss_range)
     return active & region & (could_gate | could_miss)
 

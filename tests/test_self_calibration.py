@@ -1017,7 +1017,6 @@ def test_good_patience_passes_the_check(good):
     sc._check_patience(good)  # raises on anything else (test_bad_patience)
 
 
-
 def test_radius_warning_speaks_of_the_m_step_behind_the_returned_settings():
     """The too-few-radii warning is decided on the M-step whose association the returned
     radius std would come from (``calibrate_params`` passes the returned settings' M-step,
