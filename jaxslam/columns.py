@@ -72,7 +72,7 @@ COLUMN_UNITS = {
     "num_trees_seen": "count", "diameter_error": "m", "num_diameters": "count",
     "min_ess": "particles", "num_resampled": "steps", "num_dropped_births": "count",
     "num_weight_resets": "steps", "num_invalid_controls": "steps",
-    "peak_match_rounds": "rounds",
+    "peak_match_rounds": "rounds", "num_window_cut_steps": "steps", "peak_window_cut": "count",
     "mean_mixture_ratio": "fraction",
 }
 def column_unit(name: str) -> str:

@@ -490,6 +490,74 @@ def test_summary_has_units_and_a_confidence_interval_of_the_mean(study_3):
     assert stored["study"] == config.name and stored["rows"] == json.loads(json.dumps(rows))
 
 
+WINDOW_COLUMNS = ["num_window_cut_steps", "peak_window_cut"]
+
+
+def test_without_a_window_no_run_is_flagged(study_3):
+    """No association window: the guard's columns exist, are 0 in every row, and the
+    summary carries no window warning."""
+    _, out, result = study_3
+    for name in WINDOW_COLUMNS:
+        np.testing.assert_array_equal(result.table.column(name).to_numpy(), 0)
+    assert "association window" not in (out / "summary.md").read_text()
+
+
+def test_chunk_written_before_a_column_existed_reads_as_null(study_3, tmp_path):
+    """A store whose first chunk lacks the window columns (as an earlier version wrote it)
+    still resumes and grows: its rows hold null there, a warning names the chunk and the
+    columns, every other value is unchanged, and new chunks carry the columns."""
+    import pyarrow.parquet as pq
+
+    config, source, result = study_3
+    out = copy_study(source, tmp_path / "older")
+    chunk = out / "runs" / "chunk-000000-000003.parquet"
+    pq.write_table(pq.read_table(chunk).drop_columns(WINDOW_COLUMNS), chunk)
+    study_store.record_files(out, [chunk])  # as the earlier version recorded it
+    grown_config = tiny_config("chunk_size=3", "num_runs=5")
+    with pytest.warns(UserWarning, match="chunk-000000-000003.parquet lacks "
+                                         "num_window_cut_steps, peak_window_cut"):
+        grown = studies.run_study(grown_config, out, progress=False)
+    table = grown.table
+    old = np.isin(table.column("run_id").to_numpy(), [0, 1, 2])
+    for name in WINDOW_COLUMNS:
+        column = table.column(name)
+        assert column.null_count == old.sum() == 2 * 3
+        np.testing.assert_array_equal(np.isnan(column.to_numpy(zero_copy_only=False)), old)
+        np.testing.assert_array_equal(column.to_numpy(zero_copy_only=False)[~old], 0)
+    first_rows = table.filter(pc_less(table, "run_id", 4))
+    for name in result.table.column_names:
+        if name not in WINDOW_COLUMNS:
+            np.testing.assert_array_equal(first_rows.column(name).to_numpy(),
+                                          result.table.column(name).to_numpy(), err_msg=name)
+    assert "| final_pose_error | m |" in (out / "summary.md").read_text()
+
+
+def test_summary_names_the_conditions_whose_runs_the_window_cut(study_3):
+    """``window_cut_lines`` on the study's table with the column set by hand: only the
+    condition with a flagged run is named, with its count of runs and the most steps."""
+    import pyarrow as pa
+
+    config, _, result = study_3
+    windowed = studies.load_study_config(None, TINY + ["filter.association_window=4"])
+    cut = np.zeros(result.table.num_rows, np.int32)
+    condition = result.table.column("condition").to_numpy()
+    cut[np.flatnonzero(condition == 1)[:2]] = [3, 7]
+    index = result.table.column_names.index("num_window_cut_steps")
+    table = result.table.set_column(index, "num_window_cut_steps", pa.array(cut))
+    lines = studies.window_cut_lines(windowed, table)
+    flagged = [line for line in lines if line.startswith("- ")]
+    assert len(flagged) == 1
+    assert flagged[0].startswith("- detection_probability=0.9: in 2 of 4 runs")
+    assert "association_window = 4" in flagged[0] and "up to 7 steps" in flagged[0]
+    assert studies.window_cut_lines(config, result.table) == []
+
+
+def pc_less(table, name, bound):
+    import pyarrow.compute as pc
+
+    return pc.less(table.column(name), bound)
+
+
 def pc_equal(table, condition):
     import pyarrow.compute as pc
 
@@ -718,3 +786,18 @@ def test_compiled_program_key_follows_the_numeric_jax_settings():
     finally:
         jax.config.update(name, before)
     assert other != key and runner._program_key(config, "cpu", args) == key
+
+
+@pytest.mark.slow
+def test_a_window_below_the_view_is_flagged_in_the_study(tmp_path):
+    """A window of 2 against about 15 trees, several in view at once: the guard flags runs,
+    its per-run columns are consistent (peak > 0 exactly where steps > 0), and the summary
+    names the window."""
+    config = tiny_config("filter.association_window=2", "num_runs=2", "chunk_size=2")
+    result = studies.run_study(config, tmp_path / "windowed", progress=False)
+    steps = result.table.column("num_window_cut_steps").to_numpy()
+    peak = result.table.column("peak_window_cut").to_numpy()
+    assert steps.max() > 0 and np.all(steps <= config.scenario.num_steps)
+    np.testing.assert_array_equal(peak > 0, steps > 0)
+    text = (tmp_path / "windowed" / "summary.md").read_text()
+    assert "association window (filter.association_window = 2)" in text

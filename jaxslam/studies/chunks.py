@@ -145,7 +145,13 @@ def _write_example(out_dir: pathlib.Path, scenario, example) -> pathlib.Path:
 
 def load_results(out_dir):
     """All finished chunks of a study (``out_dir/runs``) as one pyarrow.Table, sorted by
-    (condition, run_id)."""
+    (condition, run_id).
+
+    A chunk written by an earlier version may lack a column that later chunks have (a metric
+    added since, such as ``num_window_cut_steps``): its rows hold null there (NaN in
+    ``to_numpy()``), never a guessed value, and a warning names the columns and chunks.
+    Moving such a chunk and its traces away lets a resume compute it again.
+    """
     import pyarrow as pa
     import pyarrow.parquet as pq
 
@@ -153,6 +159,14 @@ def load_results(out_dir):
     if not paths:
         raise StudyError(f"no result chunks in {pathlib.Path(out_dir) / study_store.RUNS_DIR}")
     tables = [pq.read_table(p) for p in paths]
+    every_column = set().union(*(t.column_names for t in tables))
+    lacking = {path.name: sorted(every_column - set(t.column_names))
+               for path, t in zip(paths, tables) if every_column - set(t.column_names)}
+    if lacking:
+        warnings.warn(f"{pathlib.Path(out_dir)}: {len(lacking)} of {len(paths)} chunks were "
+                      f"written without some columns, which are null in their rows: "
+                      + "; ".join(f"{name} lacks {', '.join(cols)}"
+                                  for name, cols in lacking.items()))
     table = pa.concat_tables([t.replace_schema_metadata(tables[0].schema.metadata)
-                              for t in tables])
+                              for t in tables], promote_options="default")
     return table.sort_by([("condition", "ascending"), ("run_id", "ascending")])

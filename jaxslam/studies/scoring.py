@@ -63,6 +63,8 @@ def _run_metrics(config: StudyConfig, key, params: Params, controls, observation
         num_weight_resets=jnp.sum(trace.weights_reset).astype(jnp.int32),
         num_invalid_controls=jnp.sum(trace.invalid_control).astype(jnp.int32),
         peak_match_rounds=jnp.max(trace.match_rounds),
+        num_window_cut_steps=jnp.sum(trace.window_cut > 0).astype(jnp.int32),
+        peak_window_cut=jnp.max(trace.window_cut).astype(jnp.int32),
         mean_mixture_ratio=jnp.mean(trace.mixture_ratio),
     )
     example = dict(mean_pose=trace.mean_pose, landmark_mean=est.landmark_mean,

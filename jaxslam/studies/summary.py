@@ -62,6 +62,28 @@ def summary_rows(config: StudyConfig, table) -> list[dict]:
     return rows
 
 
+def window_cut_lines(config: StudyConfig, table) -> list[str]:
+    """Markdown lines that name the conditions in which ``filter.association_window`` left
+    out landmarks that could have taken part (``num_window_cut_steps`` > 0): their results
+    may differ from the full association's. Empty when no run was cut (or the column is
+    missing: a study written before it existed)."""
+    if "num_window_cut_steps" not in table.column_names:
+        return []
+    cut_steps = table.column("num_window_cut_steps").to_numpy(zero_copy_only=False)
+    condition = table.column("condition").to_numpy()
+    lines = []
+    for index, setting in enumerate(config.conditions):
+        flagged = (condition == index) & (np.nan_to_num(cut_steps.astype(float)) > 0)
+        if flagged.any():
+            lines.append(f"- {_setting_label(setting)}: in {int(flagged.sum())} of "
+                         f"{int((condition == index).sum())} runs the association window "
+                         f"(filter.association_window = {config.filter.association_window}) "
+                         "left out landmarks that could have taken part (up to "
+                         f"{int(cut_steps[flagged].max())} steps a run); raise it until no run "
+                         "is flagged, or set 0 for the full association.")
+    return ["", "Warnings:", ""] + lines if lines else []
+
+
 def _setting_label(condition: dict) -> str:
     return ", ".join(f"{k}={v}" for k, v in condition.items()) or "default"
 
@@ -89,6 +111,7 @@ def summarize_study(out_dir, table=None) -> str:
               "2.5% / 97.5%: percentiles of the runs themselves (their spread). pose_nees of "
               "a consistent filter averages 3 (chi-square, 3 degrees of freedom); far above "
               "means overconfident. Every metric is defined in docs/metrics.md."]
+    lines += window_cut_lines(config, table)
     text = "\n".join(lines) + "\n"
     study_store.atomic_write(out_dir / "summary.md", lambda p: p.write_text(text))
     rows = json.dumps({"study": config.name, "rows": summary_rows(config, table)}, indent=1)

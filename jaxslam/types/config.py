@@ -58,8 +58,8 @@ class FilterConfig:
         ``StepInfo.window_cut`` / ``Trace.window_cut`` count the landmarks the window left out
         although they could have taken part (``landmarks.may_take_part``), and the run
         warnings say so: while the count stays 0 the window gives the full association's
-        matches, set-asides and misses (up to exactly equal pair costs). Studies do not
-        report the count yet.
+        matches, set-asides and misses (up to exactly equal pair costs). Studies report it
+        per run (columns ``num_window_cut_steps`` and ``peak_window_cut``).
       max_match_rounds: bound on Gale-Shapley rounds; 0 means K * (M + 1), a bound that is
         never reached (each round either forms a proposal or exhausts an observation's list),
         so a matching is never cut short; the rounds actually used are in ``info``.
