@@ -10,7 +10,9 @@ Cases, each timed as compile time and run time apart (after ``block_until_ready`
   single   one run of T steps on an 8-tree forest (P = 100, M = 16 slots, K = 8), the whole
            run one jitted call (``run_filter``): time a step = run time / T, so the per-call
            cost is included; also the step called once a step from Python (``jit(step)``),
-           which pays the dispatch every step.
+           which pays the dispatch every step. ``--single-particles 1 10 100 400`` repeats it
+           at other P, to split a step's time into a fixed part and a part per particle
+           (the ratio to PythonRobotics is only a like-for-like figure at P = 100).
   batched  R such runs vmapped in one call: time a run-step = run time / (R T).
   study    R runs x P = 100 x M = 64 x K = 16 x T (the issue's batched case) on the default
            simulated forest: particle-steps per second. With ``--association-window N`` each
@@ -26,6 +28,7 @@ Usage:
   python benchmarks/throughput.py                       # default proposal, all three cases
   python benchmarks/throughput.py --proposal motion --runs 1000 --steps 200
   python benchmarks/throughput.py --cases single --json out.json
+  python benchmarks/throughput.py --cases single --proposal motion --single-particles 1 10 100
   python benchmarks/throughput.py --cases study --proposal motion --association-window 24
 """
 from __future__ import annotations
@@ -91,12 +94,12 @@ def _timed(fn, *args, repeats=3):
     return compile_s, float(np.median(times)), out
 
 
-def bench_single(proposal, num_steps, repeats=5):
+def bench_single(proposal, num_steps, repeats=5, num_particles=100):
     """One run as one call, and the same run one Python call a step."""
     from jaxslam.filter import make_filter, run_filter
     from jaxslam.types import default_params
 
-    config = _config(100, 16, 8, proposal)
+    config = _config(num_particles, 16, 8, proposal)
     params = default_params(config, max_range=20.0)
     batch = _small_world(1, num_steps, 8)
     controls, observations = batch.controls[0], jax.tree.map(lambda a: a[0], batch.observations)
@@ -124,13 +127,13 @@ def bench_single(proposal, num_steps, repeats=5):
         state, _ = step(key_t, state, params, control_t, obs_t)
     jax.block_until_ready(state)
     called_s = (time.perf_counter() - tick) / num_steps
-    row = dict(case="single", proposal=proposal, P=100, M=16, K=8, T=num_steps,
+    row = dict(case="single", proposal=proposal, P=num_particles, M=16, K=8, T=num_steps,
                compile_s=compile_s, run_s=run_s, step_ms=1e3 * per_step_s,
                ratio=PYTHONROBOTICS_STEP_S / per_step_s,
                step_called_per_step_ms=1e3 * called_s,
                ratio_called_per_step=PYTHONROBOTICS_STEP_S / called_s,
                target=TARGETS["single"])
-    print(f"single   proposal={proposal:11s} P=100 M=16 K=8 T={num_steps}: compile "
+    print(f"single   proposal={proposal:11s} P={num_particles} M=16 K=8 T={num_steps}: compile "
           f"{compile_s:5.1f} s, run {run_s:6.3f} s = {row['step_ms']:.3f} ms a step "
           f"({row['ratio']:.0f}x PythonRobotics; target {TARGETS['single']:.0f}x); "
           f"one Python call a step {row['step_called_per_step_ms']:.3f} ms "
@@ -198,10 +201,14 @@ def main(argv=None):
     parser.add_argument("--association-window", type=int, default=0,
                         help="study case: match against each particle's N nearest landmarks "
                              "(FilterConfig.association_window; 0: all M = 64)")
+    parser.add_argument("--single-particles", type=int, nargs="+", default=[100], metavar="P",
+                        help="particle counts of the single case (default 100, "
+                             "PythonRobotics' own)")
     parser.add_argument("--json", help="write the rows to this JSON file")
     args = parser.parse_args(argv)
-    if args.runs < 1 or args.steps < 1 or args.chunk < 1:
-        parser.error("--runs, --steps and --chunk must be positive integers")
+    if args.runs < 1 or args.steps < 1 or args.chunk < 1 or min(args.single_particles) < 1:
+        parser.error("--runs, --steps, --chunk and --single-particles must be positive "
+                     "integers")
     if args.association_window < 0:
         parser.error("--association-window must be 0 (all landmarks) or a positive integer")
     print(f"jax {jax.__version__} backend={jax.default_backend()} devices={jax.devices()}; "
@@ -209,7 +216,8 @@ def main(argv=None):
           f"PythonRobotics FastSLAM 1 reference {1e3 * PYTHONROBOTICS_STEP_S:.1f} ms a step")
     rows = []
     if "single" in args.cases:
-        rows.append(bench_single(args.proposal, args.steps))
+        rows += [bench_single(args.proposal, args.steps, num_particles=count)
+                 for count in args.single_particles]
     if "batched" in args.cases:
         rows.append(bench_batched(args.proposal, args.runs, args.steps))
     if "study" in args.cases:

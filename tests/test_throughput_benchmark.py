@@ -4,6 +4,8 @@ The full-size figures are the script's own job (issue 20; docs/results.md)."""
 import json
 import math
 
+import pytest
+
 
 def test_tiny_single_and_batched_rows(load_benchmark, tmp_path):
     throughput = load_benchmark("throughput")
@@ -34,3 +36,20 @@ def test_tiny_study_row_with_a_window_reports_what_the_window_cut(load_benchmark
     assert (row["case"], row["association_window"], row["R"], row["T"]) == ("study", 2, 2, 5)
     assert row["window_cut"] > 0
     assert math.isclose(row["particle_steps_per_s"], 2 * 100 * 5 / row["run_s"])
+
+
+def test_single_case_at_several_particle_counts(load_benchmark):
+    """``--single-particles`` gives one single row per P, in order, each with its own P."""
+    throughput = load_benchmark("throughput")
+    rows = throughput.main(["--proposal", "motion", "--cases", "single", "--steps", "3",
+                            "--single-particles", "1", "4"])
+    assert [(row["case"], row["P"]) for row in rows] == [("single", 1), ("single", 4)]
+    assert all(math.isfinite(row["step_ms"]) and row["step_ms"] > 0 for row in rows)
+
+
+def test_bad_particle_count_is_refused_by_name(load_benchmark, capsys):
+    throughput = load_benchmark("throughput")
+    with pytest.raises(SystemExit) as exit_:
+        throughput.main(["--cases", "single", "--single-particles", "0"])
+    assert exit_.value.code == 2
+    assert "--single-particles" in capsys.readouterr().err
