@@ -12,7 +12,10 @@ Layout of ``out_dir``::
   study.lock        held (``flock``) by the one process computing the study
   runs/chunk-AAAAAA-BBBBBB.parquet    one row per (run, condition) of runs [A, B); the
                     folder holds only these, so ``pandas.read_parquet(out_dir / "runs")`` and
-                    ``pyarrow.dataset.dataset(out_dir / "runs")`` read the whole study
+                    ``pyarrow.dataset.dataset(out_dir / "runs")`` read the whole study (but
+                    they keep only the first file's columns when chunks written by an
+                    earlier version lack a newer column: ``studies.load_results`` keeps
+                    every column, null where a chunk lacks it)
   traces/traces-AAAAAA-BBBBBB.npz     per-step position error (rows, T), run_id, condition
   damaged/          chunk files that failed verification, moved aside (never deleted)
   example_run.npz, summary.md, summary.json, *.png  written by the runner and the plots

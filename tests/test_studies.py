@@ -514,8 +514,9 @@ def test_chunk_written_before_a_column_existed_reads_as_null(study_3, tmp_path):
     pq.write_table(pq.read_table(chunk).drop_columns(WINDOW_COLUMNS), chunk)
     study_store.record_files(out, [chunk])  # as the earlier version recorded it
     grown_config = tiny_config("chunk_size=3", "num_runs=5")
-    with pytest.warns(UserWarning, match="chunk-000000-000003.parquet lacks "
-                                         "num_window_cut_steps, peak_window_cut"):
+    with pytest.warns(UserWarning, match=r"1 of 3 chunks \(chunk-000000-000003.parquet\) "
+                                         "were written without num_window_cut_steps, "
+                                         "peak_window_cut"):
         grown = studies.run_study(grown_config, out, progress=False)
     table = grown.table
     old = np.isin(table.column("run_id").to_numpy(), [0, 1, 2])
@@ -530,6 +531,21 @@ def test_chunk_written_before_a_column_existed_reads_as_null(study_3, tmp_path):
             np.testing.assert_array_equal(first_rows.column(name).to_numpy(),
                                           result.table.column(name).to_numpy(), err_msg=name)
     assert "| final_pose_error | m |" in (out / "summary.md").read_text()
+
+
+def test_chunks_that_disagree_on_a_column_type_are_refused_by_name(study_3, tmp_path):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    _, source, _ = study_3
+    out = copy_study(source, tmp_path / "retyped")
+    chunk = out / "runs" / "chunk-000003-000004.parquet"
+    table = pq.read_table(chunk)
+    index = table.column_names.index("num_landmarks")
+    as_text = pa.array([str(v) for v in table.column(index).to_pylist()])
+    pq.write_table(table.set_column(index, "num_landmarks", as_text), chunk)
+    with pytest.raises(studies.StudyError, match="store a column with different types"):
+        studies.load_results(out)
 
 
 def test_summary_names_the_conditions_whose_runs_the_window_cut(study_3):
@@ -550,6 +566,17 @@ def test_summary_names_the_conditions_whose_runs_the_window_cut(study_3):
     assert flagged[0].startswith("- detection_probability=0.9: in 2 of 4 runs")
     assert "association_window = 4" in flagged[0] and "up to 7 steps" in flagged[0]
     assert studies.window_cut_lines(config, result.table) == []
+    # Runs of chunks written before the column existed (null) are neither flagged nor
+    # counted as checked; they are named as unchecked.
+    nullable = pa.array([None if i < 3 else int(v) for i, v in enumerate(cut)], pa.int32())
+    with_nulls = table.set_column(index, "num_window_cut_steps", nullable)
+    lines = [line for line in studies.window_cut_lines(windowed, with_nulls)
+             if line.startswith("- ")]
+    assert lines == [
+        "- detection_probability=0.8: 3 runs were written before the window was checked "
+        "(num_window_cut_steps is null there).",
+        lines[1]]
+    assert lines[1].startswith("- detection_probability=0.9: in 2 of 4 runs")
 
 
 def pc_less(table, name, bound):
@@ -788,7 +815,6 @@ def test_compiled_program_key_follows_the_numeric_jax_settings():
     assert other != key and runner._program_key(config, "cpu", args) == key
 
 
-@pytest.mark.slow
 def test_a_window_below_the_view_is_flagged_in_the_study(tmp_path):
     """A window of 2 against about 15 trees, several in view at once: the guard flags runs,
     its per-run columns are consistent (peak > 0 exactly where steps > 0), and the summary

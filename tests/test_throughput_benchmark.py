@@ -52,4 +52,4 @@ def test_bad_particle_count_is_refused_by_name(load_benchmark, capsys):
     with pytest.raises(SystemExit) as exit_:
         throughput.main(["--cases", "single", "--single-particles", "0"])
     assert exit_.value.code == 2
-    assert "--single-particles" in capsys.readouterr().err
+    assert "every particle count must be a positive integer" in capsys.readouterr().err

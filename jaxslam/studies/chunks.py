@@ -149,8 +149,9 @@ def load_results(out_dir):
 
     A chunk written by an earlier version may lack a column that later chunks have (a metric
     added since, such as ``num_window_cut_steps``): its rows hold null there (NaN in
-    ``to_numpy()``), never a guessed value, and a warning names the columns and chunks.
-    Moving such a chunk and its traces away lets a resume compute it again.
+    ``to_numpy()``), never a guessed value, and a warning names the columns and how many
+    chunks lack them. Moving such a chunk and its traces file out of the folder lets a resume
+    compute it again. Raises StudyError when a column's type differs between chunks.
     """
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -159,14 +160,29 @@ def load_results(out_dir):
     if not paths:
         raise StudyError(f"no result chunks in {pathlib.Path(out_dir) / study_store.RUNS_DIR}")
     tables = [pq.read_table(p) for p in paths]
-    every_column = set().union(*(t.column_names for t in tables))
-    lacking = {path.name: sorted(every_column - set(t.column_names))
-               for path, t in zip(paths, tables) if every_column - set(t.column_names)}
-    if lacking:
-        warnings.warn(f"{pathlib.Path(out_dir)}: {len(lacking)} of {len(paths)} chunks were "
-                      f"written without some columns, which are null in their rows: "
-                      + "; ".join(f"{name} lacks {', '.join(cols)}"
-                                  for name, cols in lacking.items()))
-    table = pa.concat_tables([t.replace_schema_metadata(tables[0].schema.metadata)
-                              for t in tables], promote_options="default")
+    _warn_missing_columns(out_dir, paths, tables)
+    try:
+        table = pa.concat_tables([t.replace_schema_metadata(tables[0].schema.metadata)
+                                  for t in tables], promote_options="default")
+    except pa.ArrowTypeError as error:
+        raise StudyError(f"{pathlib.Path(out_dir)}: the chunks in runs/ store a column with "
+                         f"different types ({error}); move the chunks of one version (and "
+                         "their traces files) out of the folder to recompute them") from None
     return table.sort_by([("condition", "ascending"), ("run_id", "ascending")])
+
+
+def _warn_missing_columns(out_dir, paths: list, tables: list) -> None:
+    """Warn once for each set of columns that some chunks lack, with the count and the first
+    and last such chunk."""
+    every_column = set().union(*(t.column_names for t in tables))
+    lacking: dict = {}
+    for path, table in zip(paths, tables):
+        missing = tuple(sorted(every_column - set(table.column_names)))
+        if missing:
+            lacking.setdefault(missing, []).append(path.name)
+    for missing, names in lacking.items():
+        which = names[0] if len(names) == 1 else f"{names[0]} ... {names[-1]}"
+        warnings.warn(f"{pathlib.Path(out_dir)}: {len(names)} of {len(paths)} chunks ({which}) "
+                      f"were written without {', '.join(missing)}, which are null in their "
+                      "rows; move those chunks and their traces files out of the folder to "
+                      "compute them again with these columns")

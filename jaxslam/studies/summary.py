@@ -65,22 +65,30 @@ def summary_rows(config: StudyConfig, table) -> list[dict]:
 def window_cut_lines(config: StudyConfig, table) -> list[str]:
     """Markdown lines that name the conditions in which ``filter.association_window`` left
     out landmarks that could have taken part (``num_window_cut_steps`` > 0): their results
-    may differ from the full association's. Empty when no run was cut (or the column is
-    missing: a study written before it existed)."""
+    may differ from the full association's. Runs whose chunk was written before the column
+    existed (null) are counted as not checked. Empty when no run was flagged and every run
+    was checked, or when no chunk has the column."""
     if "num_window_cut_steps" not in table.column_names:
         return []
-    cut_steps = table.column("num_window_cut_steps").to_numpy(zero_copy_only=False)
+    cut_steps = table.column("num_window_cut_steps").to_numpy().astype(float)  # NaN: null
     condition = table.column("condition").to_numpy()
     lines = []
     for index, setting in enumerate(config.conditions):
-        flagged = (condition == index) & (np.nan_to_num(cut_steps.astype(float)) > 0)
+        mine = condition == index
+        checked = mine & ~np.isnan(cut_steps)
+        flagged = checked & (np.nan_to_num(cut_steps) > 0)
+        label = _setting_label(setting)
         if flagged.any():
-            lines.append(f"- {_setting_label(setting)}: in {int(flagged.sum())} of "
-                         f"{int((condition == index).sum())} runs the association window "
-                         f"(filter.association_window = {config.filter.association_window}) "
-                         "left out landmarks that could have taken part (up to "
-                         f"{int(cut_steps[flagged].max())} steps a run); raise it until no run "
-                         "is flagged, or set 0 for the full association.")
+            lines.append(f"- {label}: in {int(flagged.sum())} of {int(checked.sum())} runs the "
+                         "association window (filter.association_window = "
+                         f"{config.filter.association_window}) left out landmarks that could "
+                         f"have taken part (up to {int(cut_steps[flagged].max())} steps a run); "
+                         "raise it until no run is flagged, or set 0 for the full "
+                         "association.")
+        unchecked = int(mine.sum() - checked.sum())
+        if unchecked and config.filter.association_window:
+            lines.append(f"- {label}: {unchecked} runs were written before the window was "
+                         "checked (num_window_cut_steps is null there).")
     return ["", "Warnings:", ""] + lines if lines else []
 
 
