@@ -604,6 +604,10 @@ class VictoriaParkRun(NamedTuple):
       smoothed_path: (T, 3) the best particle's history re-solved with its associations
         fixed (``smoothing``); smoothed_gps: its ``GpsError``; smooth_s: seconds it took
         (None / None / 0.0 with ``smooth=False``).
+      closed_path: (T, 3) the same history smoothed with the loops the filter missed closed
+        (``pipeline.offline_path(close_loops=True)``); closed_gps: its ``GpsError``;
+        closures: {loop_closures, landmarks_joined}; close_s: seconds it took (None / None
+        / None / 0.0 without ``close_loops``).
     """
 
     time: np.ndarray
@@ -621,6 +625,10 @@ class VictoriaParkRun(NamedTuple):
     smoothed_path: np.ndarray | None = None
     smoothed_gps: object = None
     smooth_s: float = 0.0
+    closed_path: np.ndarray | None = None
+    closed_gps: object = None
+    closures: dict | None = None
+    close_s: float = 0.0
 
 
 def _prefix(num_scans: int | None, total: int) -> int:
@@ -657,8 +665,11 @@ def _smooth(params, controls, observations, history: lineage.LineagePath,
                                     visit_gap=visit_gap, **options)
 
 
-def _check_smoothing(smooth: bool, smooth_visit_gap):
+def _check_smoothing(smooth: bool, smooth_visit_gap, close_loops: bool = False):
     """Before the filter runs: a bad gap must not cost a finished run (or 100 of them)."""
+    if close_loops and (not smooth or smooth_visit_gap is not None):
+        raise ValueError("close_loops needs smooth=True and no smooth_visit_gap (visits are "
+                         "the smoother's own soft loop closures; choose one)")
     if smooth_visit_gap is None:
         return
     if not smooth:
@@ -698,7 +709,8 @@ def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = Non
                       steering_bias: float | np.ndarray | str = "laser",
                       smooth: bool = True,
                       smooth_visit_gap: int | None = None,
-                      smoother: dict | None = None) -> VictoriaParkRun:
+                      smoother: dict | None = None,
+                      close_loops: bool = False) -> VictoriaParkRun:
     """FastSLAM over the first ``num_scans`` scans (None: all 7,230) and its GPS score.
 
     Args:
@@ -720,8 +732,11 @@ def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = Non
         is the tested value).
       smoother: ``smoothing.smooth_path`` keywords (``smoother_options``; default the legacy
         set's).
+      close_loops: also smooth the history with the loops the filter missed closed
+        (``pipeline.offline_path``: ``loop_closure.close_loops``, plain squares, then the
+        library's default smoother on the closed association; needs ``smooth``).
     """
-    _check_smoothing(smooth, smooth_visit_gap)
+    _check_smoothing(smooth, smooth_visit_gap, close_loops)
     config, params, controls, observations, log, steps = _run_inputs(
         data, config, params, observations, num_scans, dtype, steering_bias)
     outputs, compile_s, run_s = _timed_run(config, key, params, controls, observations,
@@ -735,13 +750,23 @@ def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = Non
                            smooth_visit_gap, smoother).path
         smooth_s = time.perf_counter() - start
         smoothed_gps = _gps_score(log, smoothed, steps)
+    closed, closed_gps, closures, close_s = None, None, None, 0.0
+    if close_loops:
+        from jaxslam.pipeline import offline_path
+
+        start = time.perf_counter()
+        closed, closures = offline_path(outputs[6], controls, observations, np.zeros(3),
+                                        params, config.motion_model, close_loops=True)
+        close_s = time.perf_counter() - start
+        closed_gps = _gps_score(log, closed, steps)
     return VictoriaParkRun(
         time=log.time[:steps], path=path, landmark_mean=landmark_mean, active=active,
         landmark_count=count, num_trees=int(active.sum()),
         num_confirmed=int(np.sum(active & (count >= confirm_count))),
         gps=_gps_score(log, path, steps), ess=ess, num_landmarks=num_landmarks,
         compile_s=compile_s, run_s=run_s, smoothed_path=smoothed, smoothed_gps=smoothed_gps,
-        smooth_s=smooth_s)
+        smooth_s=smooth_s, closed_path=closed, closed_gps=closed_gps, closures=closures,
+        close_s=close_s)
 
 
 _COMPILED: dict = {}

@@ -190,6 +190,29 @@ def test_segment_end_to_end(park):
     assert result.smoothed_gps.rmse < 2.0 and result.smooth_s > 0.0
 
 
+@pytest.mark.skipif(not HAVE_DATA, reason=SKIP_REASON)
+def test_segment_with_the_missed_loops_closed(park):
+    """``close_loops`` adds the history smoothed with the loops the filter missed closed,
+    scored like the others, with its closure counts; without it the fields stay empty, and
+    it is refused before the filter runs when smoothing is off or visits are on."""
+    config = vps.victoria_park_config(num_particles=16, max_landmarks=128)
+    result = vps.run_victoria_park(jax.random.key(0), park, config, num_scans=SEGMENT,
+                                   close_loops=True)
+    assert result.closed_path.shape == (SEGMENT, 3)
+    assert np.all(np.isfinite(result.closed_path))
+    assert result.closed_gps is not None and np.isfinite(result.closed_gps.rmse)
+    assert sorted(result.closures) == ["landmarks_joined", "loop_closures"]
+    assert all(isinstance(v, int) and v >= 0 for v in result.closures.values())
+    assert result.close_s > 0.0
+    plain = vps.run_victoria_park(jax.random.key(0), park, config, num_scans=SEGMENT)
+    assert plain.closed_path is None and plain.closures is None and plain.close_s == 0.0
+    np.testing.assert_array_equal(plain.smoothed_path, result.smoothed_path)
+    for options in (dict(smooth=False), dict(smooth_visit_gap=30)):
+        with pytest.raises(ValueError, match="close_loops needs smooth=True"):
+            vps.run_victoria_park(jax.random.key(0), park, config, num_scans=SEGMENT,
+                                  close_loops=True, **options)
+
+
 @pytest.mark.slow  # 37 s; the segment end-to-end test keeps smoothing in the default tier
 @pytest.mark.skipif(not HAVE_DATA, reason=SKIP_REASON)
 def test_batch_smoothing_shapes_and_options(park):
