@@ -548,35 +548,62 @@ def test_chunks_that_disagree_on_a_column_type_are_refused_by_name(study_3, tmp_
         studies.load_results(out)
 
 
-def test_summary_names_the_conditions_whose_runs_the_window_cut(study_3):
-    """``window_cut_lines`` on the study's table with the column set by hand: only the
-    condition with a flagged run is named, with its count of runs and the most steps."""
+def _with_column(table, name, values):
+    """``table`` with column ``name`` replaced by ``values`` (a list; None is null)."""
     import pyarrow as pa
 
+    index = table.column_names.index(name)
+    return table.set_column(index, name, pa.array(values, table.schema.field(name).type))
+
+
+def test_summary_names_the_conditions_whose_runs_the_window_cut(study_3):
+    """``warning_lines`` on the study's table with the column set by hand: only the
+    condition with a flagged run is named, with its count of runs and the most steps."""
     config, _, result = study_3
     windowed = studies.load_study_config(None, TINY + ["filter.association_window=4"])
-    cut = np.zeros(result.table.num_rows, np.int32)
+    cut = np.zeros(result.table.num_rows, int)
     condition = result.table.column("condition").to_numpy()
     cut[np.flatnonzero(condition == 1)[:2]] = [3, 7]
-    index = result.table.column_names.index("num_window_cut_steps")
-    table = result.table.set_column(index, "num_window_cut_steps", pa.array(cut))
-    lines = studies.window_cut_lines(windowed, table)
-    flagged = [line for line in lines if line.startswith("- ")]
-    assert len(flagged) == 1
-    assert flagged[0].startswith("- detection_probability=0.9: in 2 of 4 runs")
-    assert "association_window = 4" in flagged[0] and "up to 7 steps" in flagged[0]
-    assert studies.window_cut_lines(config, result.table) == []
+    table = _with_column(result.table, "num_window_cut_steps", cut.tolist())
+    flagged = [line for line in studies.warning_lines(windowed, table) if line.startswith("- ")]
+    assert flagged == [
+        "- detection_probability=0.9: in 2 of 4 runs the association window "
+        "(filter.association_window = 4) left out landmarks that could have taken part (up to "
+        "7 steps in one run, `num_window_cut_steps`); raise it until no run is flagged, or set "
+        "0 for the full association."]
+    assert studies.warning_lines(config, result.table) == []
     # Runs of chunks written before the column existed (null) are neither flagged nor
     # counted as checked; they are named as unchecked.
-    nullable = pa.array([None if i < 3 else int(v) for i, v in enumerate(cut)], pa.int32())
-    with_nulls = table.set_column(index, "num_window_cut_steps", nullable)
-    lines = [line for line in studies.window_cut_lines(windowed, with_nulls)
+    with_nulls = _with_column(table, "num_window_cut_steps",
+                              [None if i < 3 else int(v) for i, v in enumerate(cut)])
+    lines = [line for line in studies.warning_lines(windowed, with_nulls)
              if line.startswith("- ")]
     assert lines == [
-        "- detection_probability=0.8: 3 runs were written before the window was checked "
-        "(num_window_cut_steps is null there).",
-        lines[1]]
-    assert lines[1].startswith("- detection_probability=0.9: in 2 of 4 runs")
+        "- detection_probability=0.8: 3 runs were written before `num_window_cut_steps` "
+        "existed (null there): not checked.",
+        flagged[0]]
+
+
+def test_summary_warns_of_full_maps_and_weight_resets(study_3, tmp_path):
+    """Dropped births (a full map) and weight resets, set by hand in one run each, are named
+    in summary.md and summary.json with what to do; the unchanged study warns of nothing."""
+    config, source, result = study_3
+    assert "Warnings:" not in (source / "summary.md").read_text()
+    births = np.zeros(result.table.num_rows, int)
+    births[0] = 12
+    resets = np.zeros(result.table.num_rows, int)
+    resets[-1] = 2
+    table = _with_column(result.table, "num_dropped_births", births.tolist())
+    table = _with_column(table, "num_weight_resets", resets.tolist())
+    out = copy_study(source, tmp_path / "warned")
+    text = studies.summarize_study(out, table)
+    assert ("- detection_probability=0.8: in 1 of 4 runs the map's 24 slots were full and new "
+            "landmarks were dropped (up to 12 births in one run, `num_dropped_births`); raise "
+            "filter.max_landmarks") in text
+    assert ("- detection_probability=0.9: in 1 of 4 runs every particle's weight was zero at "
+            "some step") in text
+    stored = json.loads((out / "summary.json").read_text())["warnings"]
+    assert len(stored) == 2 and stored[0].startswith("detection_probability=0.8: in 1 of 4")
 
 
 def pc_less(table, name, bound):

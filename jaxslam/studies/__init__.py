@@ -30,7 +30,7 @@ from jaxslam.studies.runner import (_COMPILED, ChunkOutput, StudyResult,  # noqa
                                     _ChunkRunner, recompute_runs, run_study)
 from jaxslam.studies.scoring import condition_params, scenario_batch
 from jaxslam.studies.summary import (SUMMARY_METRICS, filter_throughput, summarize_study,
-                                     summary_rows, window_cut_lines)
+                                     summary_rows, warning_lines)
 from jaxslam.study_config import (StudyConfig, demo_study_config, load_study_config,
                                   study_config_from_dict, study_config_to_dict)
 from jaxslam.study_store import StudyError, foreign_files
@@ -44,6 +44,6 @@ __all__ = [
     "load_results", "load_simulator", "load_study_config", "open_study", "recompute_runs",
     "register_simulator", "run_keys", "run_study", "run_world_of", "scenario_batch",
     "study_config_from_dict", "study_config_to_dict", "summarize_study", "summary_rows",
-    "window_cut_lines",
+    "warning_lines",
     "write_chunk",
 ]

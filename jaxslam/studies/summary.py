@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import pathlib
 import tomllib
+from typing import NamedTuple
 
 import numpy as np
 
@@ -62,33 +63,61 @@ def summary_rows(config: StudyConfig, table) -> list[dict]:
     return rows
 
 
-def window_cut_lines(config: StudyConfig, table) -> list[str]:
-    """Markdown lines that name the conditions in which ``filter.association_window`` left
-    out landmarks that could have taken part (``num_window_cut_steps`` > 0): their results
-    may differ from the full association's. Runs whose chunk was written before the column
-    existed (null) are counted as not checked. Empty when no run was flagged and every run
-    was checked, or when no chunk has the column."""
-    if "num_window_cut_steps" not in table.column_names:
-        return []
-    cut_steps = table.column("num_window_cut_steps").to_numpy().astype(float)  # NaN: null
+class _RunCheck(NamedTuple):
+    """A per-run count that should be 0 (``column`` > 0 flags the run), the words for it and
+    what to do. ``what`` and ``advice`` are formatted with the study config as ``config``."""
+
+    column: str
+    what: str
+    unit: str
+    advice: str
+    only_if: str = ""  # a FilterConfig field that must be non-zero for the check to apply
+
+
+RUN_CHECKS = (
+    _RunCheck("num_dropped_births", "the map's {config.filter.max_landmarks} slots were full "
+              "and new landmarks were dropped", "births",
+              "raise filter.max_landmarks above the landmarks a run maps"),
+    _RunCheck("num_weight_resets", "every particle's weight was zero at some step and the "
+              "weights were reset", "steps",
+              "the noise settings are likely too small for the data"),
+    _RunCheck("num_invalid_controls", "control rows held NaN or infinity and were masked",
+              "steps", "check the simulator's controls"),
+    _RunCheck("num_window_cut_steps", "the association window (filter.association_window = "
+              "{config.filter.association_window}) left out landmarks that could have taken "
+              "part", "steps", "raise it until no run is flagged, or set 0 for the full "
+              "association", only_if="association_window"),
+)
+
+
+def warning_lines(config: StudyConfig, table) -> list[str]:
+    """Markdown lines naming, per condition, the runs that a ``RUN_CHECKS`` count flags
+    (dropped births: map full; weight resets; masked controls; an association window that
+    left out landmarks that could have taken part): how many runs, the most in one run, and
+    what to do. Runs whose chunk was written before a column existed (null there) are named
+    as not checked when the check applies. Empty when nothing was flagged."""
     condition = table.column("condition").to_numpy()
     lines = []
-    for index, setting in enumerate(config.conditions):
-        mine = condition == index
-        checked = mine & ~np.isnan(cut_steps)
-        flagged = checked & (np.nan_to_num(cut_steps) > 0)
-        label = _setting_label(setting)
-        if flagged.any():
-            lines.append(f"- {label}: in {int(flagged.sum())} of {int(checked.sum())} runs the "
-                         "association window (filter.association_window = "
-                         f"{config.filter.association_window}) left out landmarks that could "
-                         f"have taken part (up to {int(cut_steps[flagged].max())} steps a run); "
-                         "raise it until no run is flagged, or set 0 for the full "
-                         "association.")
-        unchecked = int(mine.sum() - checked.sum())
-        if unchecked and config.filter.association_window:
-            lines.append(f"- {label}: {unchecked} runs were written before the window was "
-                         "checked (num_window_cut_steps is null there).")
+    for check in RUN_CHECKS:
+        if check.column not in table.column_names:
+            continue
+        if check.only_if and not getattr(config.filter, check.only_if):
+            continue
+        counts = table.column(check.column).to_numpy().astype(float)  # NaN: null
+        what = check.what.format(config=config)
+        for index, setting in enumerate(config.conditions):
+            mine = condition == index
+            checked = mine & ~np.isnan(counts)
+            flagged = checked & (np.nan_to_num(counts) > 0)
+            label = _setting_label(setting)
+            if flagged.any():
+                lines.append(f"- {label}: in {int(flagged.sum())} of {int(checked.sum())} runs "
+                             f"{what} (up to {int(counts[flagged].max())} {check.unit} in one "
+                             f"run, `{check.column}`); {check.advice}.")
+            unchecked = int(mine.sum() - checked.sum())
+            if unchecked:
+                lines.append(f"- {label}: {unchecked} runs were written before "
+                             f"`{check.column}` existed (null there): not checked.")
     return ["", "Warnings:", ""] + lines if lines else []
 
 
@@ -119,9 +148,11 @@ def summarize_study(out_dir, table=None) -> str:
               "2.5% / 97.5%: percentiles of the runs themselves (their spread). pose_nees of "
               "a consistent filter averages 3 (chi-square, 3 degrees of freedom); far above "
               "means overconfident. Every metric is defined in docs/metrics.md."]
-    lines += window_cut_lines(config, table)
+    lines += warning_lines(config, table)
     text = "\n".join(lines) + "\n"
     study_store.atomic_write(out_dir / "summary.md", lambda p: p.write_text(text))
-    rows = json.dumps({"study": config.name, "rows": summary_rows(config, table)}, indent=1)
+    warnings = [line[2:] for line in warning_lines(config, table) if line.startswith("- ")]
+    rows = json.dumps({"study": config.name, "rows": summary_rows(config, table),
+                       "warnings": warnings}, indent=1)
     study_store.atomic_write(out_dir / "summary.json", lambda p: p.write_text(rows + "\n"))
     return text
