@@ -179,7 +179,8 @@ def _regime(sensor_scale=1.0, mixture_mode="adaptive", num_particles=64):
     params = default_params(rot1_noise=(0.0, 0.72, 0.0012), trans_noise=(0.24, 0.036, 0.00018),
                             rot2_noise=(0.0, 0.72, 0.0018),
                             range_noise=(0.0, 0.005 * sensor_scale),
-                            bearing_noise=(0.0, 5e-4 * sensor_scale), mixture_ratio=0.5)
+                            bearing_noise=(0.0, 5e-4 * sensor_scale), mixture_ratio=0.5,
+                            mixture_max=0.9)  # below 1 (the default), so phi_max is seen
     trees = np.array([[6.0, 0.5], [5.0, -2.0]])
     state = mapped_state(config, trees, variance=1e-6)
     truth = np.array([0.5, 0.0, 0.0])

@@ -308,9 +308,10 @@ def test_adaptive_ratio_bounds_and_reference(params):
     out = np.asarray(jax.jit(jax.vmap(proposal.adaptive_ratio, in_axes=(0, 0, None)))(
         jnp.asarray(fast.ravel()), jnp.asarray(slow.ravel()), params))
     assert np.all(np.isfinite(out))
-    assert np.all(out >= 0.05) and np.all(out <= 0.9)
+    lo, hi = float(params.mixture_min), float(params.mixture_max)
+    assert np.all(out >= lo) and np.all(out <= hi)
     with np.errstate(over="ignore"):
-        np.testing.assert_allclose(out, ref_adaptive(fast.ravel(), slow.ravel(), 0.05, 0.9),
+        np.testing.assert_allclose(out, ref_adaptive(fast.ravel(), slow.ravel(), lo, hi),
                                    rtol=1e-12)
     # At rest (fast >= slow) the ratio is the minimum; it rises as fast drops below slow.
     assert float(proposal.adaptive_ratio(jnp.asarray(1.0), jnp.asarray(0.0), params)) == 0.05
@@ -380,7 +381,8 @@ def test_adaptive_ratio_rises_on_odometry_fault():
         ratio = np.asarray(trace.mixture_ratio)
         floor = _augmented_ratios(trace, obs, params)
         assert np.all(np.isfinite(ratio))
-        assert np.all(ratio >= 0.05 - 1e-7) and np.all(ratio <= 0.9 + 1e-7)
+        assert np.all(ratio >= params.mixture_min - 1e-7)
+        assert np.all(ratio <= params.mixture_max + 1e-7)
         assert np.all(ratio >= floor - 1e-6)
         assert np.all(np.isfinite(np.asarray(trace.mean_pose)))
         assert int(np.asarray(trace.weights_reset).sum()) == 0
@@ -390,7 +392,7 @@ def test_adaptive_ratio_rises_on_odometry_fault():
     np.testing.assert_array_equal(clean[:30], fault[:30])
     rise = floors[1][31:34].mean() - floors[0][31:34].mean()
     assert rise > 0.1, (rise, np.round(floors[0][28:36], 2), np.round(floors[1][28:36], 2))
-    np.testing.assert_allclose(fault[30:33], 0.9, atol=1e-3)
+    np.testing.assert_allclose(fault[30:33], float(params.mixture_max), atol=1e-3)
 
 
 # ---------------------------------------------------------------------------------------------

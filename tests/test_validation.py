@@ -93,7 +93,7 @@ BAD = [
     ("mixture_ratio", -0.1, {}),
     ("mixture_ratio", NAN, {}),
     ("mixture_min", 1.2, {}),
-    ("mixture_min", 0.95, {}),  # above mixture_max 0.9
+    ("mixture_min", 0.95, {"mixture_max": 0.9}),  # above mixture_max
     ("mixture_max", NAN, {}),
     ("likelihood_rate_fast", 1.5, {}),
     ("likelihood_rate_slow", -0.1, {}),

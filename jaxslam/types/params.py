@@ -175,7 +175,7 @@ PARAM_DEFAULTS = {
     # Mixture proposal.
     "mixture_ratio": 0.3,
     "mixture_min": 0.05,
-    "mixture_max": 0.9,
+    "mixture_max": 1.0,
     "likelihood_rate_fast": 0.5,
     "likelihood_rate_slow": 0.05,
 }
