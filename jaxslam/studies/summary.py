@@ -148,10 +148,11 @@ def summarize_study(out_dir, table=None) -> str:
               "2.5% / 97.5%: percentiles of the runs themselves (their spread). pose_nees of "
               "a consistent filter averages 3 (chi-square, 3 degrees of freedom); far above "
               "means overconfident. Every metric is defined in docs/metrics.md."]
-    lines += warning_lines(config, table)
+    warned = warning_lines(config, table)
+    lines += warned
     text = "\n".join(lines) + "\n"
     study_store.atomic_write(out_dir / "summary.md", lambda p: p.write_text(text))
-    warnings = [line[2:] for line in warning_lines(config, table) if line.startswith("- ")]
+    warnings = [line[2:] for line in warned if line.startswith("- ")]
     rows = json.dumps({"study": config.name, "rows": summary_rows(config, table),
                        "warnings": warnings}, indent=1)
     study_store.atomic_write(out_dir / "summary.json", lambda p: p.write_text(rows + "\n"))
