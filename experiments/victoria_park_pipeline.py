@@ -59,6 +59,7 @@ from jaxslam.datasets.victoria_park import (
 from jaxslam.detect import detect_trunks
 from jaxslam.filter import estimate, run_filter
 from jaxslam.metrics import align_se2
+from jaxslam.pipeline import check_offline_options, offline_path
 from jaxslam.types import FilterConfig, Observations, Params, default_params
 
 # The classic detector's figures (dataset README, "Known figures"): beams under 75 m, segments
@@ -667,9 +668,7 @@ def _smooth(params, controls, observations, history: lineage.LineagePath,
 
 def _check_smoothing(smooth: bool, smooth_visit_gap, close_loops: bool = False):
     """Before the filter runs: a bad gap must not cost a finished run (or 100 of them)."""
-    if close_loops and (not smooth or smooth_visit_gap is not None):
-        raise ValueError("close_loops needs smooth=True and no smooth_visit_gap (visits are "
-                         "the smoother's own soft loop closures; choose one)")
+    check_offline_options(smooth, smooth_visit_gap, close_loops)
     if smooth_visit_gap is None:
         return
     if not smooth:
@@ -752,8 +751,6 @@ def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = Non
         smoothed_gps = _gps_score(log, smoothed, steps)
     closed, closed_gps, closures, close_s = None, None, None, 0.0
     if close_loops:
-        from jaxslam.pipeline import offline_path
-
         start = time.perf_counter()
         closed, closures = offline_path(outputs[6], controls, observations, np.zeros(3),
                                         params, config.motion_model, close_loops=True)

@@ -205,9 +205,7 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
       calibration_options: keyword arguments for ``calibrate_params``.
       progress: optional callable(str) told of each stage.
     """
-    if close_loops and (not smooth or visit_gap is not None):
-        raise ValueError("close_loops needs smooth=True and no visit_gap (visits are the "
-                         "smoother's own soft loop closures; choose one)")
+    check_offline_options(smooth, visit_gap, close_loops)
     key = jax.random.PRNGKey(0) if key is None else key
     config, controls, obs, start = log_inputs(log, config)
     from jaxslam.validation import observation_units_warnings  # units guard (issue 18)
@@ -245,6 +243,14 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
         warnings = list(calibration.warnings) + warnings
     warnings = units + list(warnings)
     return LogRun(params, calibration, est, trace, mean_pose, smoothed, values, tuple(warnings))
+
+
+def check_offline_options(smooth: bool, visit_gap: int | None, close_loops: bool) -> None:
+    """Raise ValueError for ``close_loops`` without ``smooth`` or together with ``visit_gap``
+    (visits are the smoother's own soft loop closures), before any filter runs."""
+    if close_loops and (not smooth or visit_gap is not None):
+        raise ValueError("close_loops needs smooth=True and no visit_gap (visits are the "
+                         "smoother's own soft loop closures; choose one)")
 
 
 def offline_path(history, controls, obs, start, params: Params, motion_model: str,
