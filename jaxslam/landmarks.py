@@ -31,7 +31,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 
 from jaxslam.ekf import PredictedMeasurement, measurement_std, sandwich
-from jaxslam.geometry import range_bearing_jacobian_point
+from jaxslam.geometry import range_bearing_jacobian_point, wrap_angle
 from jaxslam.types import Params
 
 
@@ -102,7 +102,7 @@ SLACK = 1e-4  # relative widening of may_take_part's range margin, for rounding
 def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, boundary: str,
                   z=None, obs_valid=None, pose_cov=None):
     """(M,) bool: a superset of the landmarks that take part in an association made at
-    ``pose``, found without predicting a bearing (the window's guard, ``StepInfo.window_cut``).
+    ``pose``, in O(M + K) (the window's guard, ``StepInfo.window_cut``).
 
     With h the unit vector from the pose to landmark m at range r_m, S_rr = h^T Sigma_m h +
     sigma_r(r_m)^2 (the range entry of ``ekf``'s innovation covariance, computed by the same
@@ -115,20 +115,26 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
 
     Given the step's observations (``z`` (K, 2), ``obs_valid`` (K,); for the gated
     associations, not ``known``), a landmark in that region takes part only if an
-    observation could gate with it or a miss could be counted against it. With Z_rr the
-    range entry of the matching covariance (S_rr plus h^T Sigma_xy h when the matching adds
-    ``pose_cov`` (3, 3), as in ``ekf.add_pose_uncertainty``; the heading enters the bearing
-    only), d2 >= (z_k,r - r_m)^2 / Z_rr (the trunk radius only adds to d2), so no
-    observation gates with a landmark farther than the farthest valid observation z_max by
-    more than sqrt(g Z_rr), g the gate; a miss needs r_m <= min(horizon, miss_range)
-    (``visibility``). The landmark is kept when
+    observation could gate with it or a miss could be counted against it. Let Z be the
+    matching covariance (S plus the pose's share when the matching adds ``pose_cov``
+    (3, 3), as ``ekf.add_pose_uncertainty`` does) and b_m the predicted bearing. For a
+    symmetric positive definite Z, nu^T Z^-1 nu >= nu_i^2 / Z_ii for each component i (the
+    trunk radius only adds to d2), and the wrapped bearing difference obeys
+    |wrap(z_b - b_m)| >= |b_m| - |z_b|. So no observation gates with a landmark farther than
+    the farthest valid observation z_max by more than sqrt(g Z_rr) (g the gate), nor with
+    one whose |b_m| exceeds the widest valid |z_b| = beta_max by more than sqrt(g Z_bb); a
+    miss needs r_m <= min(horizon, miss_range) and |b_m| <= miss_bearing (``visibility``).
+    The landmark is kept when
 
-        r_m <= z_max + sqrt(g Z_rr)   or   r_m <= min(horizon, miss_range).
+        (r_m <= z_max + sqrt(g Z_rr)  and  |b_m| <= beta_max + sqrt(g Z_bb))
+        or (r_m <= min(horizon, miss_range)  and  |b_m| <= miss_bearing).
 
-    This costs O(M), so it is loose for landmarks nearer than z_max (kept) but catches the
-    usual case: a saturated sensor (its K nearest trunks) leaves the trees behind them out.
-    The margin is widened by ``SLACK`` (relative) so that rounding in the association's own
-    d2 (float32) cannot put a pair inside the gate that the bound left out.
+    This is loose for landmarks inside that range and bearing (kept) but catches the usual
+    cases: a saturated sensor (its K nearest trunks) leaves the trees behind them out, and a
+    sensor with a limited field of view leaves out the landmarks behind the robot. The
+    margins are widened by ``SLACK`` (relative, and the bearing's by ``SLACK`` rad) so
+    that rounding in the association's own float32 distances and bearings cannot put a
+    pair inside the gate or the field of view that the bound left out.
 
     Args:
       pose: (3,); landmark_mean: (M, 2); landmark_cov: (M, 3) components (sxx, sxy, syy);
@@ -139,8 +145,10 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
     dy = landmark_mean[:, 1] - pose[1]
     range_ = jnp.hypot(dx, dy)
     h00, h01, h10, h11 = range_bearing_jacobian_point(dx, dy)
-    s_rr = sandwich(h00, h01, h10, h11, landmark_cov[:, 0], landmark_cov[:, 1],
-                    landmark_cov[:, 2])[0] + measurement_std(range_, params)[0] ** 2
+    sigma_range, sigma_bearing = measurement_std(range_, params)
+    s_rr, _, s_bb = sandwich(h00, h01, h10, h11, landmark_cov[:, 0], landmark_cov[:, 1],
+                             landmark_cov[:, 2])
+    s_rr, s_bb = s_rr + sigma_range**2, s_bb + sigma_bearing**2
     if boundary == "hard":
         region = range_ <= params.max_range
     elif boundary == "loose":
@@ -149,12 +157,23 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
         raise ValueError(f"boundary={boundary!r}; expected 'hard' or 'loose'")
     if z is None:
         return active & region
-    z_rr = s_rr if pose_cov is None else s_rr + sandwich(
-        h00, h01, h10, h11, pose_cov[0, 0], pose_cov[0, 1], pose_cov[1, 1])[0]
+    z_rr, z_bb = s_rr, s_bb
+    if pose_cov is not None:  # ekf.add_pose_uncertainty's diagonal
+        xy_rr, _, xy_bb = sandwich(h00, h01, h10, h11, pose_cov[0, 0], pose_cov[0, 1],
+                                   pose_cov[1, 1])
+        z_rr = s_rr + xy_rr
+        z_bb = (s_bb + xy_bb + 2.0 * (h10 * pose_cov[0, 2] + h11 * pose_cov[1, 2])
+                + pose_cov[2, 2])
+    bearing = jnp.abs(wrap_angle(jnp.arctan2(dy, dx) - pose[2]))
     farthest = jnp.max(jnp.where(obs_valid, z[:, 0], -jnp.inf))
-    could_gate = range_ <= farthest + (1.0 + SLACK) * jnp.sqrt(params.association_gate * z_rr)
+    widest = jnp.max(jnp.where(obs_valid, jnp.abs(z[:, 1]), -jnp.inf))
+    margin = 1.0 + SLACK
+    could_gate = ((range_ <= farthest + margin * jnp.sqrt(params.association_gate * z_rr))
+                  & (bearing <= widest + margin * jnp.sqrt(params.association_gate * z_bb)
+                     + SLACK))
     horizon = jnp.where(jnp.all(obs_valid), farthest, jnp.inf)  # visibility's horizon
-    could_miss = range_ <= jnp.minimum(horizon, params.miss_range)
+    could_miss = ((range_ <= jnp.minimum(horizon, params.miss_range))
+                  & (bearing <= margin * params.miss_bearing + SLACK))
     return active & region & (could_gate | could_miss)
 
 

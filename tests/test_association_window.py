@@ -1,5 +1,5 @@
 """The association window's guard: ``landmarks.may_take_part`` (which landmarks could take
-part in an association, found without predicting a measurement) against a NumPy float64
+part in an association, bounded by range and bearing in O(M + K)) against a NumPy float64
 reference and against the visibility rule it bounds; the count of such landmarks a window
 leaves out (``StepInfo.window_cut``, ``Trace.window_cut``) in the filter; the run warning."""
 import chex
@@ -25,34 +25,46 @@ def _params(dtype=jnp.float64, **overrides):
 def ref_may_take_part(pose, mean, cov, active, params, boundary, z=None, valid=None,
                       pose_cov=None):
     """Plain NumPy float64: r <= R_max (hard); r <= R_max + a sqrt(S_rr) (loose), with
-    S_rr = h^T Sigma h + s_r(r)^2, h = (dx, dy) / r, s_r(r) = max(c_d r + c_0, floor); with
-    observations also r <= z_max + sqrt(g Z_rr) (Z_rr = S_rr + h^T Sigma_xy h, z_max the
-    farthest valid observation) or r <= min(horizon, miss_range)."""
+    S = H Sigma H^T + diag(s_r(r)^2, s_b(r)^2), H the range-bearing Jacobian of the landmark,
+    s(r) = max(c_d r + c_0, floor); with observations also (r <= z_max + sqrt(g Z_rr) and
+    |b| <= beta_max + sqrt(g Z_bb)) or (r <= min(horizon, miss_range) and
+    |b| <= miss_bearing), Z = S + Hx Sigma_u Hx^T (Hx = [-H, (0, -1)^T], the pose's share),
+    z_max the farthest and beta_max the widest valid observation."""
     pose, mean, cov = (np.asarray(v, np.float64) for v in (pose, mean, cov))
     dx, dy = mean[:, 0] - pose[0], mean[:, 1] - pose[1]
     distance = np.hypot(dx, dy)
     max_range = float(params.max_range)
-    hx, hy = dx / distance, dy / distance
+    rows = np.stack([np.stack([dx, dy], -1) / distance[:, None],
+                     np.stack([-dy, dx], -1) / distance[:, None] ** 2], 1)  # (M, 2, 2)
+    sigma = np.array([[[c[0, 0], c[0, 1]], [c[0, 1], c[0, 2]]] for c in cov[:, None]])
+    s = rows @ sigma @ np.swapaxes(rows, 1, 2)
     slope, const = (float(v) for v in np.asarray(params.range_noise))
-    sigma = np.maximum(slope * distance + const, float(params.range_std_floor))
-    s_rr = hx * hx * cov[:, 0] + 2 * hx * hy * cov[:, 1] + hy * hy * cov[:, 2] + sigma**2
+    b_slope, b_const = (float(v) for v in np.asarray(params.bearing_noise))
+    s[:, 0, 0] += np.maximum(slope * distance + const, float(params.range_std_floor)) ** 2
+    s[:, 1, 1] += np.maximum(b_slope * distance + b_const,
+                             float(params.bearing_std_floor)) ** 2
     if boundary == "hard":
         keep = np.asarray(active) & (distance <= max_range)
     else:
         keep = np.asarray(active) & (distance <= max_range + float(params.airlock_sigmas)
-                                     * np.sqrt(s_rr))
+                                     * np.sqrt(s[:, 0, 0]))
     if z is None:
         return keep
     z, valid = np.asarray(z, np.float64), np.asarray(valid)
-    z_rr = s_rr.copy()
-    if pose_cov is not None:  # the range row of Hx is (-h, 0) for the pose (x, y, theta)
-        c = np.asarray(pose_cov, np.float64)
-        z_rr += hx * hx * c[0, 0] + 2 * hx * hy * c[0, 1] + hy * hy * c[1, 1]
+    big_z = s.copy()
+    if pose_cov is not None:
+        hx = np.concatenate([-rows, np.array([0.0, -1.0])[None, :, None].repeat(len(mean), 0)],
+                            2)  # (M, 2, 3)
+        big_z += hx @ np.asarray(pose_cov, np.float64) @ np.swapaxes(hx, 1, 2)
+    bearing = np.abs(np.angle(np.exp(1j * (np.arctan2(dy, dx) - pose[2]))))
+    gate, slack = float(params.association_gate), landmarks.SLACK
     farthest = z[valid, 0].max() if valid.any() else -np.inf
-    could_gate = distance <= farthest + (1 + landmarks.SLACK) * np.sqrt(
-        float(params.association_gate) * z_rr)
+    widest = np.abs(z[valid, 1]).max() if valid.any() else -np.inf
+    could_gate = ((distance <= farthest + (1 + slack) * np.sqrt(gate * big_z[:, 0, 0]))
+                  & (bearing <= widest + (1 + slack) * np.sqrt(gate * big_z[:, 1, 1]) + slack))
     horizon = z[valid, 0].max() if valid.all() else np.inf
-    could_miss = distance <= min(horizon, float(params.miss_range))
+    could_miss = ((distance <= min(horizon, float(params.miss_range)))
+                  & (bearing <= (1 + slack) * float(params.miss_bearing) + slack))
     return keep & (could_gate | could_miss)
 
 
@@ -117,6 +129,51 @@ def test_may_take_part_with_observations_matches_the_numpy_reference(saturated, 
     assert 0 < want.sum() < region.sum()  # the observations leave some of the region out
 
 
+@pytest.mark.parametrize("with_pose_cov", [False, True])
+@pytest.mark.parametrize("jit", [False, True])
+def test_may_take_part_in_a_limited_view_matches_the_numpy_reference(with_pose_cov, jit):
+    """A sensor with a half field of view of 0.9 rad (``miss_bearing``) reporting bearings
+    within it: the implementation equals the reference, whose bearing rules leave out part
+    of what the range rules alone keep."""
+    rng = np.random.default_rng(6)
+    params = _params(miss_range=9.0, miss_bearing=0.9)
+    mean, cov, active = _random_map(rng)
+    z = np.stack([rng.uniform(1.0, 12.0, 8), rng.uniform(-0.9, 0.9, 8)], -1)
+    valid = rng.random(8) < 0.7
+    pose_cov = np.diag([0.04, 0.09, 0.01]) + 0.01 if with_pose_cov else None
+    fn = lambda p, m, s, a, zz, v: landmarks.may_take_part(
+        p, m, s, a, params, "loose", zz, v, None if pose_cov is None else jnp.asarray(pose_cov))
+    fn = jax.jit(fn) if jit else fn
+    got = np.asarray(fn(*(jnp.asarray(v) for v in (POSE, mean, cov, active, z, valid))))
+    want = ref_may_take_part(POSE, mean, cov, active, params, "loose", z, valid, pose_cov)
+    np.testing.assert_array_equal(got, want)
+    all_round = ref_may_take_part(POSE, mean, cov, active, _params(miss_range=9.0), "loose", z,
+                                  valid, pose_cov)
+    assert 0 < want.sum() < all_round.sum()
+
+
+def test_may_take_part_bearing_edges():
+    """Zero covariances, a half view of 1 rad, one valid observation (of two rows) at bearing
+    0.5 rad and 6 m: at 3 m a landmark is kept up to |b| = 0.5 + sqrt(g) s_b (observation) and, beyond,
+    up to 1 rad (a miss); at 8.5 m, past the observation's reach and inside miss_range 9 m,
+    only the miss keeps it (|b| <= 1 rad); behind the robot nothing does."""
+    params = _params(miss_range=9.0, miss_bearing=1.0, bearing_noise=(0.0, 0.2))
+    # one row unused: the sensor is not saturated, so misses count out to miss_range
+    z, valid = jnp.asarray([[6.0, 0.5], [0.0, 0.0]]), jnp.asarray([True, False])
+    def kept(r, b, miss_bearing=1.0):
+        point = jnp.asarray([[r * np.cos(b), r * np.sin(b)]])
+        p = params._replace(miss_bearing=jnp.asarray(miss_bearing, jnp.float64))
+        return bool(landmarks.may_take_part(jnp.zeros(3), point, jnp.zeros((1, 3)),
+                                            jnp.ones(1, bool), p, "loose", z, valid)[0])
+    assert float(params.association_gate) == 25.0
+    reach = 0.5 + 5.0 * (1.0 + landmarks.SLACK) * 0.2 + landmarks.SLACK  # 1.5 rad
+    assert kept(3.0, 0.0) and kept(3.0, -1.4) and kept(3.0, reach - 0.01)
+    assert not kept(3.0, reach + 0.01) and not kept(3.0, np.pi)
+    # with a view of 0.2 rad the miss no longer reaches 1 rad: only the observation does
+    assert kept(3.0, reach - 0.01, miss_bearing=0.2)
+    assert kept(8.5, 0.99) and not kept(8.5, 1.01) and not kept(8.5, -2.0)
+
+
 def test_may_take_part_with_observations_edges():
     """No valid observation: only a possible miss keeps a landmark (r <= miss_range). A
     saturated sensor (every row valid, farthest 6 m): a landmark 1 cm beyond
@@ -143,14 +200,19 @@ def test_may_take_part_with_observations_edges():
 
 @pytest.mark.parametrize("boundary", ["hard", "loose"])
 @pytest.mark.parametrize("with_pose_cov", [False, True])
-def test_every_landmark_the_association_uses_is_kept(boundary, with_pose_cov):
+@pytest.mark.parametrize("half_view", [np.pi, 0.8])
+def test_every_landmark_the_association_uses_is_kept(boundary, with_pose_cov, half_view):
     """The guard's claim, checked on the full association (no window): over 200 random
     maps, poses and observation sets (fixed seed; some observations right at a landmark,
     some at random, some steps with all rows valid), every landmark that is matched, counted
-    as a miss or, in the loose ring, sets an observation aside is in ``may_take_part``."""
+    as a miss or, in the loose ring, sets an observation aside is in ``may_take_part``.
+    With a half field of view of 0.8 rad the sensor reports and misses only bearings within
+    it, and the guard must also leave out some landmarks of its range-only bound."""
     rng = np.random.default_rng(4)
     config = FilterConfig(num_particles=1, max_landmarks=30, max_obs=6, boundary=boundary)
-    params = _params(max_range=10.0, miss_range=8.0)
+    params = _params(max_range=10.0, miss_range=8.0, miss_bearing=half_view)
+    range_only = _params(max_range=10.0, miss_range=8.0)
+    left_out = 0
     from jaxslam.step_propose import associate
     from mapped_state import mapped_state
 
@@ -170,6 +232,7 @@ def test_every_landmark_the_association_uses_is_kept(boundary, with_pose_cov):
         z[3:] = np.stack([rng.uniform(0.5, 11.0, 3), rng.uniform(-3.0, 3.0, 3)], -1)
         z[:, 1] = np.angle(np.exp(1j * z[:, 1]))
         valid = np.ones(6, bool) if trial % 3 == 0 else rng.random(6) < 0.7
+        valid &= np.abs(z[:, 1]) <= half_view  # the sensor reports within its view only
         obs = jaxslam.Observations(jnp.asarray(z, particle.pose.dtype), jnp.asarray(valid),
                                    jnp.zeros(6, particle.pose.dtype), jnp.full(6, -1, jnp.int32))
         pose_cov = (jnp.asarray(np.diag([0.05, 0.05, 0.02]), particle.pose.dtype)
@@ -194,7 +257,17 @@ def test_every_landmark_the_association_uses_is_kept(boundary, with_pose_cov):
                                                   pose_cov))
         assert not np.any(used & ~kept), trial
         used_total += used.sum()
+        wider = np.asarray(landmarks.may_take_part(pose, particle.landmark_mean,
+                                                   particle.landmark_cov, particle.active,
+                                                   range_only, boundary, obs.z, obs.valid,
+                                                   pose_cov))
+        assert not np.any(kept & ~wider), trial  # the bearings only ever leave out
+        left_out += int(np.sum(wider & ~kept))
     assert used_total > 400  # the trials used landmarks often enough to mean something
+    if half_view < np.pi:
+        assert left_out > 500  # the view's bound leaves out landmarks behind the robot
+    else:
+        assert left_out == 0  # all round: the bearing rules keep what the range rules keep
 
 
 def test_may_take_part_edges():
