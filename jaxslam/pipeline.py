@@ -63,8 +63,13 @@ class LogRun(NamedTuple):
 
 
 def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int,
-                 births: int = 0) -> list[str]:
+                 births: int = 0, false_alarm_probability: float = 0.0) -> list[str]:
     """Plain-word warnings about a finished run (each names the number behind it).
+
+    Churn: a false alarm starts a landmark that is never seen again and is deleted, so a run
+    whose sensor model expects a share p_f of the N valid observations to be clutter starts
+    about p_f N such landmarks by design. The warning counts the landmarks started beyond
+    those, births - p_f N, against ``CHURN_WARNING`` times the landmarks kept.
 
     Args:
       trace: the run's ``Trace``. valid: (T, K) the log's valid observations.
@@ -72,6 +77,8 @@ def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int
         landmark (they started landmarks or were set aside).
       num_particles: P.
       births: landmarks the best particle's history started (``history_counts``).
+      false_alarm_probability: the run's ``Params.false_alarm_probability`` (0: every
+        landmark started counts as churn).
     """
     valid = np.asarray(valid)
     out = []
@@ -109,10 +116,16 @@ def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int
     kept = int(np.asarray(trace.num_landmarks)[-1])
     if total and kept == 0:
         out.append("the final map is empty although the log has observations")
-    elif births > CHURN_WARNING * max(kept, 1):
-        out.append(f"landmarks were started and deleted over and over ({births} started, "
-                   f"{kept} kept): observations of one tree are not being matched to it, so "
-                   "the sensor noise or the gate is probably too tight (calibrate)")
+    else:
+        clutter = int(round(false_alarm_probability * total))
+        if births - clutter > CHURN_WARNING * max(kept, 1):
+            expected = (f", about {clutter} of them expected as false alarms at "
+                        f"false_alarm_probability {false_alarm_probability:.3g}"
+                        if clutter else "")
+            out.append(f"landmarks were started and deleted over and over ({births} started"
+                       f"{expected}; {kept} kept): observations of one tree are not being "
+                       "matched to it, so the sensor noise or the gate is probably too tight "
+                       "(calibrate)")
     return out
 
 
@@ -235,7 +248,8 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
               "unmatched_share": share, "landmarks_started": births,
               "dropped_births": int(np.sum(np.asarray(trace.num_dropped_births))), **closed}
     values.update(_truth_metrics(log, mean_pose, smoothed, est, map_match_threshold))
-    warnings = run_warnings(trace, valid, share, config.num_particles, births)
+    warnings = run_warnings(trace, valid, share, config.num_particles, births,
+                            float(params.false_alarm_probability))
     hint, scatter = unused_radius_hint(history, obs, params)
     warnings += hint
     values.update(scatter)

@@ -43,11 +43,26 @@ def test_a_healthy_run_has_no_warning():
     (_trace(ess=1.0), 0.1, 5, "collapsed"),
     (_trace(resets=3), 0.1, 5, "zero in 3 steps"),
     (_trace(landmarks=0), 0.1, 5, "the final map is empty"),
-    (_trace(landmarks=4), 0.1, 13, "13 started, 4 kept"),
+    (_trace(landmarks=4), 0.1, 13, "13 started; 4 kept"),
 ])
 def test_each_warning(trace, share, births, words):
     warnings = pipeline.run_warnings(trace, VALID, share, P, births)
     assert len(warnings) == 1 and words in warnings[0]
+
+
+def test_churn_counts_the_landmarks_started_beyond_the_expected_false_alarms():
+    """60 valid observations at p_f 0.1: 6 one-off landmarks are the sensor model's own
+    clutter, so with 4 kept the warning needs more than 3 * 4 + 6 = 18 started."""
+    assert pipeline.run_warnings(_trace(landmarks=4), VALID, 0.1, P, births=18,
+                                 false_alarm_probability=0.1) == []
+    warnings = pipeline.run_warnings(_trace(landmarks=4), VALID, 0.1, P, births=19,
+                                     false_alarm_probability=0.1)
+    assert len(warnings) == 1
+    assert ("19 started, about 6 of them expected as false alarms at false_alarm_probability "
+            "0.1; 4 kept" in warnings[0])
+    # without a clutter model every start counts, and the message says nothing of it
+    warnings = pipeline.run_warnings(_trace(landmarks=4), VALID, 0.1, P, births=13)
+    assert "13 started; 4 kept" in warnings[0]
 
 
 def test_edges_of_the_warning_thresholds():
