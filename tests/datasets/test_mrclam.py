@@ -312,3 +312,27 @@ def test_real_dataset_robot_1():
     assert np.isfinite(ate) and 0.1 < ate < 15.0 and np.isfinite(final)
     early = np.searchsorted(log.time, 60.0)
     assert np.hypot(*(path[early, :2] - log.truth_pose[early, :2])) < 1.0
+
+
+def test_real_dataset_barcodes_of_subjects_11_and_17_read_each_other_s_position():
+    """A fact of the shipped tables, stated in ``mrclam_convert``: every robot's readings
+    of subject 11's barcode lie at subject 17's Vicon position and the other way round, so
+    ``obs_landmark`` indices 5 and 11 name each other's ``truth_landmarks`` row. Per robot,
+    the median range error of those readings against the listed landmark is over 1 m and
+    against the other one under 0.2 m (the camera's robust range std is 0.09-0.15 m)."""
+    if not (DATA_DIR / "Robot1_Odometry.dat").is_file():
+        pytest.skip(f"MRCLAM dataset 1 not found at {DATA_DIR}")
+    for robot in range(1, 6):
+        run = mm.read_mrclam(DATA_DIR, robot)
+        steps = mc.mrclam_steps(run)
+        log = mc.mrclam_log(run, steps)
+        step, row = np.nonzero(log.obs_valid)
+        listed = steps.obs_landmark[step, row]
+        for index, other in ((5, 11), (11, 5)):
+            seen = listed == index
+            def median_range_error(landmark):
+                delta = log.truth_landmarks[landmark] - log.truth_pose[step[seen], :2]
+                return np.median(np.abs(log.obs_z[step[seen], row[seen], 0]
+                                        - np.hypot(delta[:, 0], delta[:, 1])))
+            assert seen.sum() > 100, robot
+            assert median_range_error(index) > 1.0 and median_range_error(other) < 0.2, robot
