@@ -73,12 +73,16 @@ choice is across keys was not measured).
 
 Uncertainty: ``CalibrationInfo.relative_std`` is each group's relative standard error from
 the spread of the residuals its fit used, whitened (``noise_fit.std_relative_error``: batch
-means, so heavy tails and errors correlated across neighbouring steps widen it; never below
-the chi-square figure 1 / sqrt(2 n) of n independent Gaussian samples). It is the sampling
-error of those residuals only: a bias of EM's estimate (for the motion groups: the burst
-fit's core std on some logs, the path and association EM converged to) is not in it, and
-for the motion groups that part is often the larger (docs/results.md, self_calibration,
-"Do the stated intervals hold the truth?"). A fitted trunk-radius std gets its error from a
+means, so heavy tails and errors correlated across neighbouring steps widen it), counted
+with the smoother's degrees of freedom of the group (its redundancy r_g,
+``smoothing.Smoothed.redundancy``): never below the chi-square figure 1 / sqrt(2 r_g). The
+smoothed path absorbs most of a move's error where the observations pin each pose loosely,
+so the motion groups keep r_g of 35-70 of their 250-500 rows on the simulated loops of
+``experiments/self_calibration.py``, and their intervals widen by up to sqrt(n / r_g), about
+2.7x there, over what n independent residuals would give. It is still the sampling error only: a bias of EM's
+estimate (the burst fit's core std on some logs, the path and association EM converged to)
+is not in it (docs/results.md, self_calibration, "The stated interval counts the
+smoother's degrees of freedom"). A fitted trunk-radius std gets its error from a
 bootstrap over the landmarks whose radii it used (``noise_fit.radius_noise_relative_error``):
 one tree's radii share its median and its shape, so the trees, not the radii, are the
 independent samples.
@@ -144,14 +148,12 @@ class CalibrationInfo(NamedTuple):
       values: the final settings, a dict of floats or tuples (the fitted ``Params`` fields).
       relative_std: dict group -> relative standard error of its std (module docstring),
         from the M-steps behind the returned settings: the sampling error of the group's
-        residuals only. On held-out simulated logs (32: 2 regimes x 2 log sets x 8; measured
-        before ``patience`` stopped EM early, which moved one log set's count from 46 to 44
-        of 64, docs/results.md, calibration_time) the truth
-        lay within 1 +- 1.96 relative_std in 56 of 64 cases for the sensor groups and in 44
-        of 64 for the motion groups (33 of 64 with the chi-square figure alone): EM's motion
-        estimate can sit below the truth, which no spread of the residuals shows (the
-        burst fit's core std on some logs, the path and association EM converged to;
-        docs/results.md, self_calibration). "radius": a fitted ``radius_noise``'s relative
+        residuals, with the smoother's degrees of freedom. On held-out simulated logs (32: 2
+        regimes x 2 log sets x 8) the truth lay within 1 +- 1.96 relative_std in 59 of
+        64 cases for the sensor groups and in 55 of 64 for the motion groups (58 and 44
+        when every residual counted as a degree of freedom; with fitted bursts counted in
+        the motion std): EM's motion estimate can sit below the truth by more than that
+        (docs/results.md, self_calibration). "radius": a fitted ``radius_noise``'s relative
         error, by a bootstrap over the landmarks whose radii it used
         (``noise_fit.radius_noise_relative_error``; inf with a single such landmark). Empty
         when the starting settings are returned.
@@ -437,7 +439,8 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
                                          if calibrate_radius else ({}, 0, float("inf")))
     return _MStep(update, float(smoothed.cost[-1]) / max(rows, 1), motion is not None,
                   obs is not None, int(used.sum()),
-                  group_relative_errors(res, used, motion is not None, obs is not None),
+                  group_relative_errors(res, used, motion is not None, obs is not None,
+                                        smoothed.redundancy),
                   bursts_fitted, radius or None, radius_used, radius_error)
 
 

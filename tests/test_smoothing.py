@@ -273,13 +273,17 @@ def test_variance_factors_match_the_exact_redundancy():
     jacobian = scipy.sparse.csr_matrix(rng.normal(size=(60, 12)))
     residual = rng.normal(size=60)
     steps, num_obs = 4, 24  # rows: 12 move rows (4 heading, 8 translation), 48 observation
-    factors = solver.variance_factors(residual, jacobian, steps, num_obs, probes=4000)
+    components = solver.variance_factors(residual, jacobian, steps, num_obs, probes=4000)
     dense = jacobian.toarray()
     hat = dense @ np.linalg.solve(dense.T @ dense, dense.T)
-    for factor, rows in zip(factors, solver.group_rows(steps, num_obs)):
-        exact = np.sum(residual[rows] ** 2) / (rows.size - np.trace(hat[np.ix_(rows, rows)]))
+    for factor, redundancy, rows in zip(*components, solver.group_rows(steps, num_obs)):
+        exact_redundancy = rows.size - np.trace(hat[np.ix_(rows, rows)])
+        exact = np.sum(residual[rows] ** 2) / exact_redundancy
         # 4000 Rademacher probes: the trace's relative error is ~ sqrt(2 / 4000) = 2 %.
         np.testing.assert_allclose(factor, exact, rtol=0.1)
+        np.testing.assert_allclose(redundancy, exact_redundancy, rtol=0.1)
+    # the 12 unknowns take 12 degrees of freedom out of the 60 rows in all
+    np.testing.assert_allclose(components.redundancy.sum(), 60 - 12, rtol=0.05)
 
 
 # ---------------------------------------------------------------------------------------------

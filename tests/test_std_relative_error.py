@@ -60,6 +60,44 @@ def test_intervals_hold_the_truth_on_heavy_tailed_samples():
     assert gaussian.mean() < 0.8
 
 
+def test_degrees_of_freedom_of_a_least_squares_fit_set_the_width():
+    """Residuals of a least-squares fit keep only its redundancy nu of their n rows: with a
+    random 400 x 340 design, e = (I - H) eps has nu = 60 degrees of freedom, and the variance
+    estimate e^T e / nu is chi-square / nu. Over 400 draws (fixed seed) of eps ~ N(0, 1) the
+    std's stated interval 1 +- 1.96 x std_relative_error(e, nu) must hold sigma = 1 in
+    [88 %, 99 %] of them (binomial +-3 sigma around 95 % is [92 %, 98 %]; the batch means
+    over correlated residuals add their own error); the same residuals counted as 400
+    independent samples give intervals 2.6x too narrow, holding it in about 55 % (2 Phi(1.96
+    x 0.035 / 0.091) - 1; asserted under 70 %, 6 binomial sigma above)."""
+    rng = np.random.default_rng(6)
+    rows, unknowns, draws = 400, 340, 400
+    design = rng.standard_normal((rows, unknowns))
+    q, _ = np.linalg.qr(design)
+    noise = rng.standard_normal((draws, rows))
+    residual = noise - (noise @ q) @ q.T  # (I - H) eps, H = Q Q^T
+    nu = rows - unknowns
+    estimate = np.sqrt(np.sum(residual**2, axis=1) / nu)
+    stated = np.array([std_relative_error(e, nu) for e in residual])
+    as_independent = np.array([std_relative_error(e) for e in residual])
+    assert 0.88 <= np.mean(np.abs(estimate - 1.0) <= 1.96 * stated) <= 0.99
+    assert np.mean(np.abs(estimate - 1.0) <= 1.96 * as_independent) < 0.7
+    assert np.all(stated >= 1.0 / np.sqrt(2.0 * nu))  # never below chi-square with nu
+
+
+def test_degrees_of_freedom_edges():
+    """nu >= n or None: the figure for n samples; nu below 1 counts as 1; the deficit
+    sqrt(n / nu) multiplies both the Gaussian floor and the batch figure."""
+    white = np.random.default_rng(7).standard_normal(400)
+    plain = std_relative_error(white)
+    assert std_relative_error(white, None) == plain
+    assert std_relative_error(white, 400.0) == plain
+    assert std_relative_error(white, 1e6) == plain
+    np.testing.assert_allclose(std_relative_error(white, 100.0), 2.0 * plain, rtol=1e-12)
+    assert std_relative_error(white, 0.01) == std_relative_error(white, 1.0)
+    assert std_relative_error(np.arange(1.0, 11.0), 2.5) == pytest.approx(
+        np.sqrt(10 / 2.5) * _gaussian_figure(10), rel=1e-12)
+
+
 @pytest.mark.parametrize("white, expected", [
     (np.zeros(0), np.inf),                                   # nothing fitted
     (np.full(5, np.nan), np.inf),                           # nothing finite
@@ -124,6 +162,16 @@ def test_group_errors_whiten_each_group_as_the_fit_does():
     white = res.observation_error[used] / res.observation_std[used]
     assert errors["range"] == std_relative_error(white[:, 0])
     assert errors["bearing"] == std_relative_error(white[:, 1])
+    # with the smoother's redundancies each group counts as that many degrees of freedom
+    redundancy = np.array([40.0, 55.0, 350.0, 390.0])
+    reduced = group_relative_errors(res, used, motion=True, observation=True,
+                                    redundancy=redundancy)
+    assert reduced["heading"] == std_relative_error((e[:, 0] + e[:, 2]) / np.hypot(s[:, 0],
+                                                                                   s[:, 2]), 40.0)
+    assert reduced["translation"] == std_relative_error(e[:, 1] / s[:, 1], 55.0)
+    assert reduced["range"] == std_relative_error(white[:, 0], 350.0)
+    assert reduced["bearing"] == std_relative_error(white[:, 1], 390.0)
+    assert reduced["heading"] > 2.5 * errors["heading"]  # sqrt(299 / 40) = 2.7
     assert set(group_relative_errors(res, used, motion=False, observation=True)) == {
         "range", "bearing"}
     assert group_relative_errors(res, used, motion=False, observation=False) == {}

@@ -31,7 +31,9 @@ class Smoothed(NamedTuple):
     cost: (I + 1,) robust cost before the first and after each accepted step;
     iterations: steps tried; converged: the last relative cost decrease was under ``tol``;
     noise_scales: the ``NoiseScales`` used (estimated ones with ``calibrate_rounds``);
-    visits: ``Visits`` with ``visit_gap`` (each landmark is then at its largest visit), else None.
+    visits: ``Visits`` with ``visit_gap`` (each landmark is then at its largest visit), else None;
+    redundancy: (4,) each noise group's redundancy r_g (its degrees of freedom,
+    ``solver.variance_factors``) in the last ``calibrate_rounds`` round, else None.
     """
 
     path: np.ndarray
@@ -42,6 +44,7 @@ class Smoothed(NamedTuple):
     converged: bool
     noise_scales: NoiseScales = NoiseScales()
     visits: Visits | None = None
+    redundancy: np.ndarray | None = None
 
 
 def _check_inputs(start_pose, path, odometry, z, landmark_of_obs, steps: int):
@@ -121,10 +124,11 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
                                  int(landmark_of_obs.max(initial=-1)) + 1)
     solve = functools.partial(solver.levenberg_marquardt, iterations=iterations, tol=tol,
                               damping=damping)
-    problem, scales, (path, landmark, costs, step, converged) = _solve_and_calibrate(
-        base, scales, path, landmark, calibrate_rounds, solve)
+    problem, scales, redundancy, (path, landmark, costs, step, converged) = (
+        _solve_and_calibrate(base, scales, path, landmark, calibrate_rounds, solve))
     if visit_gap is None:
-        return Smoothed(path, landmark, landmark_of_obs, costs, step, converged, scales)
+        return Smoothed(path, landmark, landmark_of_obs, costs, step, converged, scales,
+                        redundancy=redundancy)
     # Split from the merged solution: every link starts satisfied, at the least-squares
     # compromise, and the redescending loss then lets go of the ones that stay stretched.
     visit_of_obs, visit_landmark, links = split_visits(landmark_of_obs, visit_gap,
@@ -139,7 +143,8 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
         problem.link_threshold)[0]
     return Smoothed(path, largest_visit(visit_position, visit_of_obs, visit_landmark),
                     landmark_of_obs, costs, step, converged, scales,
-                    Visits(visit_position, visit_of_obs, visit_landmark, links, link_weight))
+                    Visits(visit_position, visit_of_obs, visit_landmark, links, link_weight),
+                    redundancy)
 
 
 def _check_options(iterations, calibrate_rounds, huber, scales, visit_gap, link_std,
@@ -168,23 +173,27 @@ def _base_problem(start_pose, odometry, z, landmark_of_obs, params: Params,
 
 def _solve_and_calibrate(base: Problem, scales: NoiseScales, path, landmark, rounds: int,
                          solve):
-    """(problem, scales, ``solve``'s result): solve at ``scales``, then ``rounds`` times
-    re-estimate the scales from the residuals (``solver.variance_factors``) and solve again.
+    """(problem, scales, redundancy, ``solve``'s result): solve at ``scales``, then ``rounds``
+    times re-estimate the scales from the residuals (``solver.variance_factors``) and solve
+    again. redundancy: (4,) of the last round (None without rounds).
 
     One ``Factorizer`` serves every solve: the associations fix the sparsity pattern.
     """
     factorize = solver.Factorizer()
     problem = rescaled(base, scales)
     result = solve(problem, path, landmark, factorize=factorize)
+    redundancy = None
     for _ in range(rounds):
         path, landmark = result[:2]
         residual, jacobian, _ = linearize(problem, path, landmark)
-        factors = solver.variance_factors(residual, jacobian, len(path), len(base.obs_t),
-                                          factorize=factorize)
-        scales = NoiseScales(*(float(v) for v in np.asarray(scales) * np.sqrt(factors)))
+        components = solver.variance_factors(residual, jacobian, len(path), len(base.obs_t),
+                                             factorize=factorize)
+        redundancy = components.redundancy
+        scales = NoiseScales(*(float(v) for v in
+                               np.asarray(scales) * np.sqrt(components.factor)))
         problem = rescaled(base, scales)
         result = solve(problem, path, landmark, factorize=factorize)
-    return problem, scales, result
+    return problem, scales, redundancy, result
 
 
 def smooth_lineage(start_pose, lineage_path: LineagePath, odometry, z, params: Params,

@@ -7,6 +7,8 @@ and every calibration round.
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
@@ -103,15 +105,27 @@ def group_rows(steps: int, num_obs: int):
     return (move, np.concatenate([move + 1, move + 2]), obs, obs + 1)
 
 
+class VarianceComponents(NamedTuple):
+    """Per noise group (heading, translation, range, bearing): factor (4,), the variance
+    factor (e_g^T e_g) / r_g, and redundancy (4,), r_g (``variance_factors``)."""
+
+    factor: np.ndarray
+    redundancy: np.ndarray
+
+
 def variance_factors(residual, jacobian, steps: int, num_obs: int, probes: int = 16,
-                     factorize=None):
+                     factorize=None) -> VarianceComponents:
     """Helmert/Forstner variance components: per group g, (e_g^T e_g) / r_g.
 
     e are the whitened residuals (R,) at the solution, J (R, n) their Jacobian and
     r_g = n_g - tr(J_g H^-1 J_g^T) the group's redundancy (H = J^T J), the trace by
     Hutchinson's estimator with ``probes`` fixed-seed Rademacher vectors. A factor of 1 means
-    the group's noise is as assumed. ``factorize``: the problem's ``Factorizer`` (a new one
-    when None). Returns (4,).
+    the group's noise is as assumed. r_g is also the group's degrees of freedom: for Gaussian
+    noise e_g^T e_g / sigma_g^2 is about chi-square with r_g of them, so the factor's relative
+    error is sqrt(2 / r_g), not sqrt(2 / n_g). The path absorbs the rest: where the
+    observations pin each pose less well than one move's odometry does, most of a move's
+    error is explained by the path and r_g is a small part of n_g. ``factorize``: the
+    problem's ``Factorizer`` (a new one when None). Returns ``VarianceComponents``.
     """
     hessian = jacobian.T @ jacobian
     # A landmark index no observation uses has an empty column; the tiny ridge keeps H
@@ -120,7 +134,7 @@ def variance_factors(residual, jacobian, steps: int, num_obs: int, probes: int =
         np.full(hessian.shape[0], 1e-12 * float(np.mean(hessian.diagonal()))))).tocsc()
     solve = (Factorizer() if factorize is None else factorize)(hessian)
     rng = np.random.default_rng(0)
-    factors = []
+    factors, redundancies = [], []
     for rows in group_rows(steps, num_obs):
         probe = np.zeros((jacobian.shape[0], probes))
         probe[rows] = rng.choice([-1.0, 1.0], size=(rows.size, probes))
@@ -128,4 +142,5 @@ def variance_factors(residual, jacobian, steps: int, num_obs: int, probes: int =
         trace = float(np.sum(projected * solve(projected))) / probes
         redundancy = max(rows.size - trace, 1.0)
         factors.append(float(np.sum(residual[rows] ** 2) / redundancy))
-    return np.asarray(factors)
+        redundancies.append(redundancy)
+    return VarianceComponents(np.asarray(factors), np.asarray(redundancies))
