@@ -108,6 +108,18 @@ def test_may_take_part_under_vmap_equals_each_map_alone():
                                                   params, "loose"))
 
 
+def _against_reference(params, mean, cov, active, z, valid, pose_cov, jit):
+    """``may_take_part`` (loose) at ``POSE`` with observations, asserted equal to the NumPy
+    reference, which is returned."""
+    fn = lambda p, m, s, a, zz, v: landmarks.may_take_part(
+        p, m, s, a, params, "loose", zz, v, None if pose_cov is None else jnp.asarray(pose_cov))
+    fn = jax.jit(fn) if jit else fn
+    got = np.asarray(fn(*(jnp.asarray(v) for v in (POSE, mean, cov, active, z, valid))))
+    want = ref_may_take_part(POSE, mean, cov, active, params, "loose", z, valid, pose_cov)
+    np.testing.assert_array_equal(got, want)
+    return want
+
+
 @pytest.mark.parametrize("saturated", [False, True])
 @pytest.mark.parametrize("with_pose_cov", [False, True])
 @pytest.mark.parametrize("jit", [False, True])
@@ -119,12 +131,7 @@ def test_may_take_part_with_observations_matches_the_numpy_reference(saturated, 
     z = np.stack([rng.uniform(1.0, 12.0, 8), rng.uniform(-np.pi, np.pi, 8)], -1)
     valid = np.ones(8, bool) if saturated else rng.random(8) < 0.6
     pose_cov = np.diag([0.04, 0.09, 0.01]) + 0.01 if with_pose_cov else None
-    fn = lambda p, m, s, a, zz, v: landmarks.may_take_part(
-        p, m, s, a, params, "loose", zz, v, None if pose_cov is None else jnp.asarray(pose_cov))
-    fn = jax.jit(fn) if jit else fn
-    got = np.asarray(fn(*(jnp.asarray(v) for v in (POSE, mean, cov, active, z, valid))))
-    want = ref_may_take_part(POSE, mean, cov, active, params, "loose", z, valid, pose_cov)
-    np.testing.assert_array_equal(got, want)
+    want = _against_reference(params, mean, cov, active, z, valid, pose_cov, jit)
     region = ref_may_take_part(POSE, mean, cov, active, params, "loose")
     assert 0 < want.sum() < region.sum()  # the observations leave some of the region out
 
@@ -141,12 +148,7 @@ def test_may_take_part_in_a_limited_view_matches_the_numpy_reference(with_pose_c
     z = np.stack([rng.uniform(1.0, 12.0, 8), rng.uniform(-0.9, 0.9, 8)], -1)
     valid = rng.random(8) < 0.7
     pose_cov = np.diag([0.04, 0.09, 0.01]) + 0.01 if with_pose_cov else None
-    fn = lambda p, m, s, a, zz, v: landmarks.may_take_part(
-        p, m, s, a, params, "loose", zz, v, None if pose_cov is None else jnp.asarray(pose_cov))
-    fn = jax.jit(fn) if jit else fn
-    got = np.asarray(fn(*(jnp.asarray(v) for v in (POSE, mean, cov, active, z, valid))))
-    want = ref_may_take_part(POSE, mean, cov, active, params, "loose", z, valid, pose_cov)
-    np.testing.assert_array_equal(got, want)
+    want = _against_reference(params, mean, cov, active, z, valid, pose_cov, jit)
     all_round = ref_may_take_part(POSE, mean, cov, active, _params(miss_range=9.0), "loose", z,
                                   valid, pose_cov)
     assert 0 < want.sum() < all_round.sum()
