@@ -103,6 +103,17 @@ def predict_measurements(pose, landmark_mean, landmark_cov, params: Params):
                                 s_rr, s_rb, s_bb, i_rr, i_rb, i_bb, log_det, noise_rr, noise_bb)
 
 
+def pose_share_terms(h00, h01, h10, h11, pose_cov):
+    """The terms of Hx Sigma_u Hx^T (``add_pose_uncertainty``) for the landmark Jacobian H
+    (h.. any shape) and the pose covariance Sigma_u = [[Sxy, c], [c^T, s_tt]] (3, 3):
+    ((rr, rb, bb) of H Sxy H^T, (v0, v1) = H c). The share is
+    [[rr, rb + v0], [rb + v0, bb + 2 v1 + s_tt]]; callers add it in their own order."""
+    xy = sandwich(h00, h01, h10, h11, pose_cov[0, 0], pose_cov[0, 1], pose_cov[1, 1])
+    v0 = h00 * pose_cov[0, 2] + h01 * pose_cov[1, 2]
+    v1 = h10 * pose_cov[0, 2] + h11 * pose_cov[1, 2]
+    return xy, (v0, v1)
+
+
 def add_pose_uncertainty(predicted: PredictedMeasurement, pose_cov):
     """Innovation covariance with the pose uncertainty added (FastSLAM 2.0 association).
 
@@ -117,10 +128,7 @@ def add_pose_uncertainty(predicted: PredictedMeasurement, pose_cov):
       ``PredictedMeasurement`` whose s_*, i_* and log_det describe Z (R and H unchanged).
     """
     p = predicted
-    xy_rr, xy_rb, xy_bb = sandwich(p.h00, p.h01, p.h10, p.h11,
-                                   pose_cov[0, 0], pose_cov[0, 1], pose_cov[1, 1])
-    v0 = p.h00 * pose_cov[0, 2] + p.h01 * pose_cov[1, 2]
-    v1 = p.h10 * pose_cov[0, 2] + p.h11 * pose_cov[1, 2]
+    (xy_rr, xy_rb, xy_bb), (v0, v1) = pose_share_terms(p.h00, p.h01, p.h10, p.h11, pose_cov)
     s_rr = p.s_rr + xy_rr
     s_rb = p.s_rb + xy_rb + v0
     s_bb = p.s_bb + xy_bb + 2.0 * v1 + pose_cov[2, 2]

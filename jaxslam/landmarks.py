@@ -30,7 +30,7 @@ from typing import NamedTuple
 
 import jax.numpy as jnp
 
-from jaxslam.ekf import PredictedMeasurement, measurement_std, sandwich
+from jaxslam.ekf import PredictedMeasurement, measurement_std, pose_share_terms, sandwich
 from jaxslam.geometry import range_bearing_jacobian_point, wrap_angle
 from jaxslam.types import Params
 
@@ -96,7 +96,7 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
                       matchable & may_be_missed)
 
 
-SLACK = 1e-4  # relative widening of may_take_part's range margin, for rounding
+SLACK = 1e-4  # may_take_part's widening for rounding: relative on its margins, plus rad on bearings
 
 
 def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, boundary: str,
@@ -159,11 +159,9 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
         return active & region
     z_rr, z_bb = s_rr, s_bb
     if pose_cov is not None:  # ekf.add_pose_uncertainty's diagonal
-        xy_rr, _, xy_bb = sandwich(h00, h01, h10, h11, pose_cov[0, 0], pose_cov[0, 1],
-                                   pose_cov[1, 1])
+        (xy_rr, _, xy_bb), (_, v1) = pose_share_terms(h00, h01, h10, h11, pose_cov)
         z_rr = s_rr + xy_rr
-        z_bb = (s_bb + xy_bb + 2.0 * (h10 * pose_cov[0, 2] + h11 * pose_cov[1, 2])
-                + pose_cov[2, 2])
+        z_bb = s_bb + xy_bb + 2.0 * v1 + pose_cov[2, 2]
     bearing = jnp.abs(wrap_angle(jnp.arctan2(dy, dx) - pose[2]))
     farthest = jnp.max(jnp.where(obs_valid, z[:, 0], -jnp.inf))
     widest = jnp.max(jnp.where(obs_valid, jnp.abs(z[:, 1]), -jnp.inf))

@@ -77,8 +77,10 @@ def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int
         landmark (they started landmarks or were set aside).
       num_particles: P.
       births: landmarks the best particle's history started (``history_counts``).
-      false_alarm_probability: the run's ``Params.false_alarm_probability`` (0: every
-        landmark started counts as churn).
+      false_alarm_probability: the run's ``Params.false_alarm_probability``, calibrated or
+        as given (0: every landmark started counts as churn). Uncalibrated, the library
+        default 0.05 forgives one start per 20 valid observations, so on a log with many
+        observations a map's churn must be larger before this warns.
     """
     valid = np.asarray(valid)
     out = []

@@ -330,9 +330,13 @@ def test_real_dataset_barcodes_of_subjects_11_and_17_read_each_other_s_position(
         listed = steps.obs_landmark[step, row]
         for index, other in ((5, 11), (11, 5)):
             seen = listed == index
-            def median_range_error(landmark):
-                delta = log.truth_landmarks[landmark] - log.truth_pose[step[seen], :2]
-                return np.median(np.abs(log.obs_z[step[seen], row[seen], 0]
-                                        - np.hypot(delta[:, 0], delta[:, 1])))
             assert seen.sum() > 100, robot
-            assert median_range_error(index) > 1.0 and median_range_error(other) < 0.2, robot
+            pose, measured = log.truth_pose[step[seen], :2], log.obs_z[step[seen], row[seen], 0]
+            assert _median_range_error(pose, measured, log.truth_landmarks[index]) > 1.0, robot
+            assert _median_range_error(pose, measured, log.truth_landmarks[other]) < 0.2, robot
+
+
+def _median_range_error(pose, measured, landmark):
+    """Median |measured range - range from the true pose (n, 2) to ``landmark`` (2,)|."""
+    delta = landmark - pose
+    return np.median(np.abs(measured - np.hypot(delta[:, 0], delta[:, 1])))
