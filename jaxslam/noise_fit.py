@@ -284,9 +284,12 @@ def std_relative_error(white, degrees_of_freedom: float | None = None) -> float:
     ``degrees_of_freedom``: nu, the degrees of freedom of the estimate (the smoother's
     redundancy of the group, ``group_relative_errors``), None for S; clipped to [1, S]. A
     least-squares solution absorbs part of each residual, so the residuals carry only nu
-    independent squares: with nu < S both figures below are scaled by sqrt(S / nu), the
-    Gaussian one becoming 1 / sqrt(2 nu) (chi-square with nu degrees of freedom), the batch
-    means' keeping their measure of heavy tails and correlation relative to it.
+    independent squares and the Gaussian floor becomes 1 / sqrt(2 nu) (chi-square with nu
+    degrees of freedom). The batch-means figure is left as it is: for Gaussian residuals
+    e = (I - H) eps, Var(sum e^2) = 2 tr((I - H)^2) = 2 nu, and the batch means measure
+    exactly that sum of squared covariances when the correlation is shorter than a batch, as
+    a smoothed path's is; scaling it as well would count the correlation twice. Where the
+    correlation is not local (a dense design) the batches miss it and the floor holds.
 
     The std is taken as the root mean square: s = sqrt(mean(w^2)), so by the delta method
     SE(s) / s = SE(mean(w^2)) / (2 mean(w^2)). For independent Gaussian residuals that is
@@ -315,7 +318,7 @@ def std_relative_error(white, degrees_of_freedom: float | None = None) -> float:
     length = count // batches
     batch_means = squares[:batches * length].reshape(batches, length).mean(axis=1)
     error_of_mean = np.std(batch_means, ddof=1) / np.sqrt(batches)
-    return float(max(gaussian, deficit * 0.5 * error_of_mean / mean))
+    return float(max(gaussian, 0.5 * error_of_mean / mean))
 
 
 def group_relative_errors(res: Residuals, used: np.ndarray, motion: bool,
@@ -332,8 +335,8 @@ def group_relative_errors(res: Residuals, used: np.ndarray, motion: bool,
     freedom are r_g (``smoothing.solver.variance_factors``), so r_g is passed on as them
     (``std_relative_error``). Where the observations pin the path loosely, the smoothed path
     absorbs most of each move's error: on the simulated loops of
-    ``experiments/self_calibration.py`` r_g is 35-50 of 250 heading rows and 40-70 of 500
-    translation rows, while the observation groups keep about 0.9 of theirs."""
+    ``experiments/self_calibration.py`` r_g was 34-50 of 250 heading rows and 41-72 of 500
+    translation rows at the first M-step, while the observation groups keep about 0.9 of theirs."""
     dof = [None] * 4 if redundancy is None else [float(r) for r in np.asarray(redundancy)]
 
     out = {}

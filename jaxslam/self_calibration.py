@@ -73,16 +73,17 @@ choice is across keys was not measured).
 
 Uncertainty: ``CalibrationInfo.relative_std`` is each group's relative standard error from
 the spread of the residuals its fit used, whitened (``noise_fit.std_relative_error``: batch
-means, so heavy tails and errors correlated across neighbouring steps widen it), counted
-with the smoother's degrees of freedom of the group (its redundancy r_g,
-``smoothing.Smoothed.redundancy``): never below the chi-square figure 1 / sqrt(2 r_g). The
-smoothed path absorbs most of a move's error where the observations pin each pose loosely,
-so the motion groups keep r_g of 35-70 of their 250-500 rows on the simulated loops of
-``experiments/self_calibration.py``, and their intervals widen by up to sqrt(n / r_g), about
-2.7x there, over what n independent residuals would give. It is still the sampling error only: a bias of EM's
-estimate (the burst fit's core std on some logs, the path and association EM converged to)
-is not in it (docs/results.md, self_calibration, "The stated interval counts the
-smoother's degrees of freedom"). A fitted trunk-radius std gets its error from a
+means, so heavy tails and errors correlated across neighbouring steps widen it), never below
+the chi-square figure 1 / sqrt(2 r_g) of the smoother's degrees of freedom of the group (its
+redundancy r_g, ``smoothing.Smoothed.redundancy``). The smoothed path absorbs most of a
+move's error where the observations pin each pose loosely: the motion groups kept r_g of
+34-50 of 250 heading rows and 41-72 of 500 translation rows at the first M-step on simulated
+loops of ``experiments/self_calibration.py``, and on Victoria Park (with 640 map slots) the
+heading group's stated error reached the floor of one degree of freedom, +-146 %: there the
+smoother's residuals do not determine the heading noise. It is still the sampling error
+only: a bias of EM's estimate (the burst fit's core std on some logs, the path and
+association EM converged to) is not in it (docs/results.md, self_calibration, "The stated
+interval counts the smoother's degrees of freedom"). A fitted trunk-radius std gets its error from a
 bootstrap over the landmarks whose radii it used (``noise_fit.radius_noise_relative_error``):
 one tree's radii share its median and its shape, so the trees, not the radii, are the
 independent samples.
@@ -149,8 +150,8 @@ class CalibrationInfo(NamedTuple):
       relative_std: dict group -> relative standard error of its std (module docstring),
         from the M-steps behind the returned settings: the sampling error of the group's
         residuals, with the smoother's degrees of freedom. On held-out simulated logs (32: 2
-        regimes x 2 log sets x 8) the truth lay within 1 +- 1.96 relative_std in 59 of
-        64 cases for the sensor groups and in 55 of 64 for the motion groups (58 and 44
+        regimes x 2 log sets x 8) the truth lay within 1 +- 1.96 relative_std in 58 of
+        64 cases for the sensor groups and in 46 of 64 for the motion groups (58 and 44
         when every residual counted as a degree of freedom; with fitted bursts counted in
         the motion std): EM's motion estimate can sit below the truth by more than that
         (docs/results.md, self_calibration). "radius": a fitted ``radius_noise``'s relative

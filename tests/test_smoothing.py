@@ -585,6 +585,16 @@ def test_noise_calibration_recovers_the_observation_noise():
         assert 0.4 < scales.range < 0.6 and 0.4 < scales.bearing < 0.6, scales
         assert 0.75 < scales.heading < 1.25, scales
         assert position_rmse(out.path, truth[1:]) < 0.02
+        # the last round's redundancies: each group keeps part of its rows (200 heading, 400
+        # translation, one a observation for range and for bearing), and together they are
+        # the rows less the 3 T + 2 L unknowns (the sum of 4 Hutchinson traces of 16 probes
+        # each: within 10 %)
+        rows = np.array([200, 400, np.sum(ids >= 0), np.sum(ids >= 0)])
+        assert out.redundancy.shape == (4,)
+        assert np.all((out.redundancy > 0) & (out.redundancy < rows)), out.redundancy
+        unknowns = 3 * 200 + 2 * (ids.max() + 1)
+        np.testing.assert_allclose(out.redundancy.sum(), rows.sum() - unknowns, rtol=0.1)
+    assert smoothing.smooth_path(truth[0], out.path, odometry, z, ids, params).redundancy is None
     with pytest.raises(ValueError, match="positive"):
         smoothing.smooth_path(truth[0], truth[1:], odometry, z, ids, params,
                               noise_scales=(1.0, 0.0, 1.0, 1.0))

@@ -84,18 +84,46 @@ def test_degrees_of_freedom_of_a_least_squares_fit_set_the_width():
     assert np.all(stated >= 1.0 / np.sqrt(2.0 * nu))  # never below chi-square with nu
 
 
+def test_degrees_of_freedom_of_a_smoothed_path_are_not_counted_twice():
+    """A path-like least squares: a 1-D random walk of 250 unit-noise moves with a position
+    fix (std 0.5) every 10 steps; the move residuals keep nu of 250 degrees of freedom and
+    are correlated over a few steps, which the batch means measure. Over 400 draws (fixed
+    seed) the stated interval with nu must hold sigma in [90 %, 99 %] (binomial +-3 sigma
+    around 95 % is [92 %, 98 %], with margin for the batch estimate's own error); scaling
+    the batch figure by sqrt(250 / nu) as well would hold it in every draw."""
+    rng = np.random.default_rng(8)
+    steps, every, fix_std, draws = 250, 10, 0.5, 400
+    moves = np.eye(steps) - np.eye(steps, k=-1)
+    fixes = np.eye(steps)[every - 1::every] / fix_std
+    design = np.vstack([moves, fixes])
+    hat = design @ np.linalg.solve(design.T @ design, design.T)
+    nu = steps - np.trace(hat[:steps, :steps])
+    residual = (rng.standard_normal((draws, len(design))) @ (np.eye(len(design)) - hat).T)
+    residual = residual[:, :steps]
+    estimate = np.sqrt(np.sum(residual**2, axis=1) / nu)
+    stated = np.array([std_relative_error(e, nu) for e in residual])
+    inside = np.abs(estimate - 1.0) <= 1.96 * stated
+    assert nu < 0.5 * steps  # the fixes leave most of each move's error to the path
+    assert 0.90 <= inside.mean() <= 0.99
+    twice = np.abs(estimate - 1.0) <= 1.96 * stated * np.sqrt(steps / nu)
+    assert twice.mean() > inside.mean()
+
+
 def test_degrees_of_freedom_edges():
-    """nu >= n or None: the figure for n samples; nu below 1 counts as 1; the deficit
-    sqrt(n / nu) multiplies both the Gaussian floor and the batch figure."""
+    """nu >= n or None: the figure for n samples; nu below 1 counts as 1; nu sets the
+    Gaussian floor 1 / sqrt(2 nu), below which the result never falls, and leaves the batch
+    figure as it is."""
     white = np.random.default_rng(7).standard_normal(400)
     plain = std_relative_error(white)
     assert std_relative_error(white, None) == plain
     assert std_relative_error(white, 400.0) == plain
     assert std_relative_error(white, 1e6) == plain
-    np.testing.assert_allclose(std_relative_error(white, 100.0), 2.0 * plain, rtol=1e-12)
     assert std_relative_error(white, 0.01) == std_relative_error(white, 1.0)
+    assert std_relative_error(white, 100.0) == pytest.approx(1.0 / np.sqrt(200.0), rel=1e-12)
+    heavy = np.random.default_rng(9).standard_t(3, size=400)  # batch figure above the floor
+    assert std_relative_error(heavy, 390.0) == std_relative_error(heavy) > _gaussian_figure(390)
     assert std_relative_error(np.arange(1.0, 11.0), 2.5) == pytest.approx(
-        np.sqrt(10 / 2.5) * _gaussian_figure(10), rel=1e-12)
+        1.0 / np.sqrt(2 * 2.5), rel=1e-12)
 
 
 @pytest.mark.parametrize("white, expected", [
