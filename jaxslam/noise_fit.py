@@ -308,9 +308,9 @@ def std_relative_error(white, degrees_of_freedom: float | None = None) -> float:
     count = squares.size
     if count == 0:
         return float("inf")
-    deficit = 1.0 if degrees_of_freedom is None else float(
-        np.sqrt(count / np.clip(degrees_of_freedom, 1.0, count)))
-    gaussian = deficit / np.sqrt(2.0 * count)
+    nu = count if degrees_of_freedom is None else float(
+        np.clip(degrees_of_freedom, 1.0, count))
+    gaussian = 1.0 / np.sqrt(2.0 * nu)
     batches = int(np.sqrt(count))
     mean = float(np.mean(squares))
     if batches < 4 or not mean > 0.0:
@@ -336,7 +336,9 @@ def group_relative_errors(res: Residuals, used: np.ndarray, motion: bool,
     (``std_relative_error``). Where the observations pin the path loosely, the smoothed path
     absorbs most of each move's error: on the simulated loops of
     ``experiments/self_calibration.py`` r_g was 34-50 of 250 heading rows and 41-72 of 500
-    translation rows at the first M-step, while the observation groups keep about 0.9 of theirs."""
+    translation rows at the first M-step, while the observation groups keep about 0.9 of
+    theirs. The translation group's two rows a move can leave r_g above its S residuals;
+    ``std_relative_error`` then clips it to S."""
     dof = [None] * 4 if redundancy is None else [float(r) for r in np.asarray(redundancy)]
 
     out = {}

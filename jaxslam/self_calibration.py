@@ -78,15 +78,16 @@ the chi-square figure 1 / sqrt(2 r_g) of the smoother's degrees of freedom of th
 redundancy r_g, ``smoothing.Smoothed.redundancy``). The smoothed path absorbs most of a
 move's error where the observations pin each pose loosely: the motion groups kept r_g of
 34-50 of 250 heading rows and 41-72 of 500 translation rows at the first M-step on simulated
-loops of ``experiments/self_calibration.py``, and on Victoria Park (with 640 map slots) the
-heading group's stated error reached the floor of one degree of freedom, +-146 %: there the
-smoother's residuals do not determine the heading noise. It is still the sampling error
-only: a bias of EM's estimate (the burst fit's core std on some logs, the path and
-association EM converged to) is not in it (docs/results.md, self_calibration, "The stated
-interval counts the smoother's degrees of freedom"). A fitted trunk-radius std gets its error from a
-bootstrap over the landmarks whose radii it used (``noise_fit.radius_noise_relative_error``):
-one tree's radii share its median and its shape, so the trees, not the radii, are the
-independent samples.
+loops of ``experiments/self_calibration.py``; on Victoria Park (with 640 map slots) the
+heading group's redundancy fell to its clip of 1, below what the smoother's trace estimate
+resolves (``smoothing.solver.variance_factors``), and its stated error to +-146 %: the
+heading noise rests on a few tens of degrees of freedom there at most. It is still the
+sampling error only: a bias of EM's estimate (the burst fit's core std on some logs, the
+path and association EM converged to) is not in it (docs/results.md, self_calibration, "The
+stated interval counts the smoother's degrees of freedom"). A fitted trunk-radius std gets its
+error from a bootstrap over the landmarks whose radii it used
+(``noise_fit.radius_noise_relative_error``): one tree's radii share its median and its
+shape, so the trees, not the radii, are the independent samples.
 
 Cost: one filter run per iteration, at most ``iterations`` (4 of at most 5 on MRCLAM robot 1
 with ``patience``), plus the scale search's runs on the same compiled filter (at most 7 with the

@@ -124,8 +124,11 @@ def variance_factors(residual, jacobian, steps: int, num_obs: int, probes: int =
     noise e_g^T e_g / sigma_g^2 is about chi-square with r_g of them, so the factor's relative
     error is sqrt(2 / r_g), not sqrt(2 / n_g). The path absorbs the rest: where the
     observations pin each pose less well than one move's odometry does, most of a move's
-    error is explained by the path and r_g is a small part of n_g. ``factorize``: the
-    problem's ``Factorizer`` (a new one when None). Returns ``VarianceComponents``.
+    error is explained by the path and r_g is a small part of n_g. The trace's own error is
+    about sqrt(2 n_g / probes) for a group whose rows are nearly all absorbed (about 30 of
+    Victoria Park's 7,230 heading rows with 16 probes), so a redundancy below that is not
+    resolved; it is clipped at 1. ``factorize``: the problem's ``Factorizer`` (a new one
+    when None). Returns ``VarianceComponents``.
     """
     hessian = jacobian.T @ jacobian
     # A landmark index no observation uses has an empty column; the tiny ridge keeps H
