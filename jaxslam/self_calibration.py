@@ -112,7 +112,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxslam import lineage, smoothing
-from jaxslam.calibration_residuals import smoothed_residuals, typical_stds
+from jaxslam.calibration_residuals import NOISE_GROUPS, smoothed_residuals, typical_stds
 from jaxslam.detection_fit import gate_with_radius, sensor_update, single_share
 from jaxslam.filter import run_filter
 from jaxslam.landmark_merge import merge_split_landmarks, relabel
@@ -164,7 +164,8 @@ class CalibrationInfo(NamedTuple):
         fitted ``radius_noise``.
       converged: whether the typical stds stopped moving (``tol``).
       verdict: one line in plain words.
-      warnings: tuple of plain-word warnings (data too sparse, a group kept at its start).
+      warnings: tuple of plain-word warnings (data too sparse, a group kept at its start, a
+        group the log barely determines: ``loose_interval_warnings``).
       noise_scales: ``noise_scale.ScaleSearch`` of the likelihood search after EM
         (``scale_search=True`` and something fitted), else None (the verdict says which).
       dropped_births: (iterations,) int64 births each iteration's filter run dropped because
@@ -444,6 +445,25 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
                   group_relative_errors(res, used, motion is not None, obs is not None,
                                         smoothed.redundancy),
                   bursts_fitted, radius or None, radius_used, radius_error)
+
+
+LOOSE_INTERVAL = 0.5  # a noise group's stated 95 % half-width (relative) above which it is named
+
+
+def loose_interval_warnings(relative_std: dict) -> list[str]:
+    """Plain-word warnings for the noise groups (``NOISE_GROUPS``) whose stated 95 % interval,
+    1 +- 1.96 ``relative_std``, is wider than +-``LOOSE_INTERVAL``: the log barely determines
+    them, most often because the smoothed path absorbs the group's error (few degrees of
+    freedom; Victoria Park's heading noise: +-92 %, docs/results.md, self_calibration). A
+    group with no finite figure is not named (it was not fitted)."""
+    out = []
+    for group in NOISE_GROUPS:
+        half = 1.96 * float(relative_std.get(group, float("inf")))
+        if np.isfinite(half) and half > LOOSE_INTERVAL:
+            out.append(f"the log barely determines the {group} noise (95 % interval "
+                       f"+-{100.0 * half:.0f} % of the fitted std): if the run goes wrong, "
+                       f"try a wider {group} noise than the fitted one")
+    return out
 
 
 def _behind(m_steps: list, source) -> int:
@@ -837,6 +857,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     if warnings:
         verdict += "; partly calibrated (see warnings)"
     relative_std, samples, bursts_fitted = _stated_errors(m_steps, source, steps)
+    warnings += loose_interval_warnings(relative_std)
     return params, CalibrationInfo(done, np.asarray(objective), np.asarray(costs),
                                    np.asarray(typical), values, relative_std, samples,
                                    converged, verdict, tuple(warnings), found,

@@ -227,3 +227,18 @@ def test_stated_errors_come_from_the_m_steps_behind_the_returned_settings():
     assert _stated_errors([first, sensor_only], sensor_only, 250)[2] is True
     # The starting settings returned (no M-step behind them): nothing is stated.
     assert _stated_errors([first, second, third], None, 250) == ({}, {}, None)
+
+
+def test_groups_the_log_barely_determines_are_named():
+    """A group is named when 1.96 relative_std exceeds 0.5 (Victoria Park's heading: 0.467,
+    +-92 %); exactly 0.5 is not; unfitted (absent or inf) groups and the radius are not."""
+    from jaxslam.self_calibration import LOOSE_INTERVAL, loose_interval_warnings
+
+    assert LOOSE_INTERVAL == 0.5
+    lines = loose_interval_warnings({"heading": 0.467, "translation": 0.5 / 1.96,
+                                     "range": 0.019, "bearing": float("inf"), "radius": 3.0})
+    assert len(lines) == 1
+    assert "heading noise (95 % interval +-92 % of the fitted std)" in lines[0]
+    assert "wider heading noise" in lines[0]
+    assert loose_interval_warnings({}) == []
+    assert len(loose_interval_warnings({"translation": 0.26, "range": 0.3})) == 2
