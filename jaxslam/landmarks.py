@@ -31,7 +31,7 @@ from typing import NamedTuple
 import jax.numpy as jnp
 
 from jaxslam.ekf import PredictedMeasurement, measurement_std, pose_share_terms, sandwich
-from jaxslam.geometry import range_bearing_jacobian_point, wrap_angle
+from jaxslam.geometry import range_bearing_jacobian_point
 from jaxslam.types import Params
 
 
@@ -96,7 +96,7 @@ def visibility(z, obs_valid, active, predicted: PredictedMeasurement, mahalanobi
                       matchable & may_be_missed)
 
 
-SLACK = 1e-4  # may_take_part's widening for rounding: relative on its margins, plus rad on bearings
+SLACK = 1e-4  # may_take_part's widening for rounding: relative on margins, absolute on cosines
 
 
 def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, boundary: str,
@@ -122,19 +122,22 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
     trunk radius only adds to d2), and the wrapped bearing difference obeys
     |wrap(z_b - b_m)| >= |b_m| - |z_b|. So no observation gates with a landmark farther than
     the farthest valid observation z_max by more than sqrt(g Z_rr) (g the gate), nor with
-    one whose |b_m| exceeds the widest valid |z_b| = beta_max by more than sqrt(g Z_bb); a
-    miss needs r_m <= min(horizon, miss_range) and |b_m| <= miss_bearing (``visibility``).
-    The landmark is kept when
+    one whose |b_m| exceeds the widest valid |z_b| = beta_max by more than
+    delta_m = sqrt(g Z_bb); a miss needs r_m <= min(horizon, miss_range) and
+    |b_m| <= miss_bearing (``visibility``). The bearings are tested by their cosines, which
+    need no arctangent per landmark: cos b_m = h . (cos theta, sin theta) (theta the pose's
+    heading), |b| <= x <=> cos b >= cos x on [0, pi], and, cos being 1-Lipschitz,
+    cos(beta_max + delta_m) >= cos(beta_max) - delta_m. The landmark is kept when
 
-        (r_m <= z_max + sqrt(g Z_rr)  and  |b_m| <= beta_max + sqrt(g Z_bb))
-        or (r_m <= min(horizon, miss_range)  and  |b_m| <= miss_bearing).
+        (r_m <= z_max + sqrt(g Z_rr)  and  cos b_m >= cos(beta_max) - delta_m)
+        or (r_m <= min(horizon, miss_range)  and  cos b_m >= cos(miss_bearing)).
 
     This is loose for landmarks inside that range and bearing (kept) but catches the usual
     cases: a saturated sensor (its K nearest trunks) leaves the trees behind them out, and a
     sensor with a limited field of view leaves out the landmarks behind the robot. The
-    margins are widened by ``SLACK`` (relative, and the bearing's by ``SLACK`` rad) so
-    that rounding in the association's own float32 distances and bearings cannot put a
-    pair inside the gate or the field of view that the bound left out.
+    margins are widened by ``SLACK`` (relative on the range margin and on delta_m, absolute
+    on the cosines) so that rounding in the association's own float32 distances and bearings
+    cannot put a pair inside the gate or the field of view that the bound left out.
 
     Args:
       pose: (3,); landmark_mean: (M, 2); landmark_cov: (M, 3) components (sxx, sxy, syy);
@@ -162,16 +165,18 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
         (xy_rr, _, xy_bb), (_, v1) = pose_share_terms(h00, h01, h10, h11, pose_cov)
         z_rr = s_rr + xy_rr
         z_bb = s_bb + xy_bb + 2.0 * v1 + pose_cov[2, 2]
-    bearing = jnp.abs(wrap_angle(jnp.arctan2(dy, dx) - pose[2]))
+    ahead = dx * jnp.cos(pose[2]) + dy * jnp.sin(pose[2])
+    # cos b_m; a landmark on the pose has bearing 0, as atan2(0, 0) gives the association
+    cos_bearing = jnp.where(range_ > 0.0, ahead / jnp.where(range_ > 0.0, range_, 1.0), 1.0)
     farthest = jnp.max(jnp.where(obs_valid, z[:, 0], -jnp.inf))
     widest = jnp.max(jnp.where(obs_valid, jnp.abs(z[:, 1]), -jnp.inf))
     margin = 1.0 + SLACK
     could_gate = ((range_ <= farthest + margin * jnp.sqrt(params.association_gate * z_rr))
-                  & (bearing <= widest + margin * jnp.sqrt(params.association_gate * z_bb)
-                     + SLACK))
+                  & (cos_bearing >= jnp.cos(jnp.clip(widest, 0.0, jnp.pi))
+                     - margin * jnp.sqrt(params.association_gate * z_bb) - SLACK))
     horizon = jnp.where(jnp.all(obs_valid), farthest, jnp.inf)  # visibility's horizon
     could_miss = ((range_ <= jnp.minimum(horizon, params.miss_range))
-                  & (bearing <= margin * params.miss_bearing + SLACK))
+                  & (cos_bearing >= jnp.cos(jnp.minimum(params.miss_bearing, jnp.pi)) - SLACK))
     return active & region & (could_gate | could_miss)
 
 

@@ -65,7 +65,7 @@ def summary_rows(config: StudyConfig, table) -> list[dict]:
 
 class _RunCheck(NamedTuple):
     """A per-run count that should be 0 (``column`` > 0 flags the run), the words for it and
-    what to do. ``what`` and ``advice`` are formatted with the study config as ``config``."""
+    what to do. ``what`` is formatted with the study config as ``config``."""
 
     column: str
     what: str
