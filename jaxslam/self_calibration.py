@@ -24,7 +24,9 @@ estimation use, with the particle filter as the E-step's data associator:
            them, EM on MAP residuals shrinks the noise every iteration); bursts
            (``fit_bursts``: ``motion_outlier_probability`` and ``motion_outlier_scale``) when
            a two-scale mixture beats one Gaussian by BIC, else the default tail
-           (``defensive_bursts``) and a std widened to cover 95 % of the residuals;
+           (``defensive_bursts``) and a std widened to cover 95 % of the residuals, both
+           fitted to the move residuals at unit mean square (``noise_fit.unit_mean_square``:
+           the variance factors set the scale, the residuals' shape sets core and bursts);
          * sensor (``detection_fit``): ``max_range``, ``miss_bearing``, ``miss_range``,
            ``detection_probability``, ``false_alarm_probability`` and ``association_gate``;
          * trunk radius, when the observations carry measured radii: ``radius_noise``, the
@@ -78,12 +80,14 @@ the chi-square figure 1 / sqrt(2 r_g) of the smoother's degrees of freedom of th
 redundancy r_g, ``smoothing.Smoothed.redundancy``). The smoothed path absorbs most of a
 move's error where the observations pin each pose loosely: the motion groups kept r_g of
 34-50 of 250 heading rows and 41-72 of 500 translation rows at the first M-step on simulated
-loops of ``experiments/self_calibration.py``; on Victoria Park (with 640 map slots) the
-heading group's redundancy fell to its clip of 1, below what the smoother's trace estimate
-resolves (``smoothing.solver.variance_factors``), and its stated error to +-146 %: the
-heading noise rests on a few tens of degrees of freedom there at most. It is still the
-sampling error only: a bias of EM's estimate (the burst fit's core std on some logs, the
-path and association EM converged to) is not in it (docs/results.md, self_calibration, "The
+loops of ``experiments/self_calibration.py``. On Victoria Park the heading group kept about
+2,500 of 7,230 at the first M-step, but in a calibration with 640 map slots it fell to its
+clip of 1 at a later one, and the stated error to +-146 %: once EM has made the heading
+noise small against what the observations resolve, the odometry alone fixes each pose's
+heading and the heading rows are all absorbed (a trace error of at most sqrt(2 r_g / 16),
+``smoothing.solver.variance_factors``, so this is the smoother's answer, not the probe's
+noise). It is still the sampling error only: a bias of EM's estimate (the path and
+association EM converged to) is not in it (docs/results.md, self_calibration, "The
 stated interval counts the smoother's degrees of freedom"). A fitted trunk-radius std gets its
 error from a bootstrap over the landmarks whose radii it used
 (``noise_fit.radius_noise_relative_error``): one tree's radii share its median and its
@@ -151,11 +155,11 @@ class CalibrationInfo(NamedTuple):
       relative_std: dict group -> relative standard error of its std (module docstring),
         from the M-steps behind the returned settings: the sampling error of the group's
         residuals, with the smoother's degrees of freedom. On held-out simulated logs (32: 2
-        regimes x 2 log sets x 8) the truth lay within 1 +- 1.96 relative_std in 58 of
-        64 cases for the sensor groups and in 46 of 64 for the motion groups (58 and 44
-        when every residual counted as a degree of freedom; with fitted bursts counted in
-        the motion std): EM's motion estimate can sit below the truth by more than that
-        (docs/results.md, self_calibration). "radius": a fitted ``radius_noise``'s relative
+        regimes x 2 log sets x 8) the truth lay within 1 +- 1.96 relative_std in 56 of
+        64 cases for the sensor groups and in 43 of 64 for the motion groups (with fitted
+        bursts counted in the motion std): on smooth loops EM's heading estimate sits
+        below the truth by more than that (docs/results.md, self_calibration, "The burst
+        fit on the shrunk residuals"). "radius": a fitted ``radius_noise``'s relative
         error, by a bootstrap over the landmarks whose radii it used
         (``noise_fit.radius_noise_relative_error``; inf with a single such landmark). Empty
         when the starting settings are returned.
