@@ -305,8 +305,9 @@ def std_relative_error(white, degrees_of_freedom: float | None = None) -> float:
     """Relative standard error of a noise std estimated from the whitened residuals ``white``
     (S,) of its group, in time order (non-finite entries dropped).
 
-    ``degrees_of_freedom``: nu, the degrees of freedom of the estimate (the smoother's
-    redundancy of the group, ``group_relative_errors``), None for S; clipped to [1, S]. A
+    ``degrees_of_freedom``: nu, the degrees of freedom of the estimate (those of the
+    smoother's variance factor of the group, ``group_relative_errors``), None for S; clipped
+    to [1, S]. A
     least-squares solution absorbs part of each residual, so the residuals carry only nu
     independent squares and the Gaussian floor becomes 1 / sqrt(2 nu) (chi-square with nu
     degrees of freedom). The batch-means figure is left as it is: for Gaussian residuals
@@ -346,24 +347,26 @@ def std_relative_error(white, degrees_of_freedom: float | None = None) -> float:
 
 
 def group_relative_errors(res: Residuals, used: np.ndarray, motion: bool,
-                          observation: bool, redundancy=None) -> dict:
+                          observation: bool, degrees_of_freedom=None) -> dict:
     """``std_relative_error`` of each fitted noise group (heading, translation, range,
     bearing) from ``res``' residuals whitened by their own Eq. (1) / Table 2 std (the shape
     of the settings the residuals were computed with; the relative error does not depend on
     the scale). The heading group's residual is rot1 + rot2, as in ``motion_noise_update``.
     ``used`` (S,): the observation samples that entered the fit.
 
-    ``redundancy``: None, or (4,) the smoother's redundancy r_g of each group
-    (``smoothing.Smoothed.redundancy``). The M-step scales each group's fit to the smoother's
-    variance factor (``motion_noise_update``, ``observation_noise_update``), whose degrees of
-    freedom are r_g (``smoothing.solver.variance_factors``), so r_g is passed on as them
-    (``std_relative_error``). Where the observations pin the path loosely, the smoothed path
-    absorbs most of each move's error: on the simulated loops of
-    ``experiments/self_calibration.py`` r_g was 34-50 of 250 heading rows and 41-72 of 500
-    translation rows at the first M-step, while the observation groups keep about 0.9 of
-    theirs. The translation group's two rows a move can leave r_g above its S residuals;
+    ``degrees_of_freedom``: None, or (4,) those of the smoother's variance factor of each
+    group (``smoothing.Smoothed.degrees_of_freedom``, nu_g). The M-step scales each group's
+    fit to that factor (``motion_noise_update``, ``observation_noise_update``), so nu_g is
+    passed on (``std_relative_error``). Where the observations pin the path loosely, the
+    smoothed path absorbs most of each move's error: on the simulated loops of
+    ``experiments/self_calibration.py`` the heading group's redundancy r_g was 34-50 of 250
+    rows and the translation group's 41-72 of 500 at the first M-step, and nu_g is smaller
+    still (about half of r_g for the heading group at the true noise: the path shares the
+    error with the bearings), while the observation groups keep about 0.9 of theirs. The
+    translation group's two rows a move can leave nu_g above its S residuals;
     ``std_relative_error`` then clips it to S."""
-    dof = [None] * 4 if redundancy is None else [float(r) for r in np.asarray(redundancy)]
+    dof = ([None] * 4 if degrees_of_freedom is None
+           else [float(r) for r in np.asarray(degrees_of_freedom)])
 
     out = {}
     if motion:

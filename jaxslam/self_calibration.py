@@ -76,8 +76,10 @@ choice is across keys was not measured).
 Uncertainty: ``CalibrationInfo.relative_std`` is each group's relative standard error from
 the spread of the residuals its fit used, whitened (``noise_fit.std_relative_error``: batch
 means, so heavy tails and errors correlated across neighbouring steps widen it), never below
-the chi-square figure 1 / sqrt(2 r_g) of the smoother's degrees of freedom of the group (its
-redundancy r_g, ``smoothing.Smoothed.redundancy``). The smoothed path absorbs most of a
+the chi-square figure 1 / sqrt(2 nu_g) of the smoother's degrees of freedom of the group's
+variance factor (``smoothing.Smoothed.degrees_of_freedom``: nu_g = 1 / (S^-1)_gg of the four
+groups' factors estimated together, at most its redundancy r_g,
+``smoothing.solver.variance_factors``). The smoothed path absorbs most of a
 move's error where the observations pin each pose loosely: the motion groups kept r_g of
 34-50 of 250 heading rows and 41-72 of 500 translation rows at the first M-step on simulated
 loops of ``experiments/self_calibration.py``. On Victoria Park the heading group kept about
@@ -447,7 +449,7 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
     return _MStep(update, float(smoothed.cost[-1]) / max(rows, 1), motion is not None,
                   obs is not None, int(used.sum()),
                   group_relative_errors(res, used, motion is not None, obs is not None,
-                                        smoothed.redundancy),
+                                        smoothed.degrees_of_freedom),
                   bursts_fitted, radius or None, radius_used, radius_error)
 
 

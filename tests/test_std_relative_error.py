@@ -193,7 +193,7 @@ def test_group_errors_whiten_each_group_as_the_fit_does():
     # with the smoother's redundancies each group counts as that many degrees of freedom
     redundancy = np.array([40.0, 55.0, 350.0, 390.0])
     reduced = group_relative_errors(res, used, motion=True, observation=True,
-                                    redundancy=redundancy)
+                                    degrees_of_freedom=redundancy)
     assert reduced["heading"] == std_relative_error((e[:, 0] + e[:, 2]) / np.hypot(s[:, 0],
                                                                                    s[:, 2]), 40.0)
     assert reduced["translation"] == std_relative_error(e[:, 1] / s[:, 1], 55.0)

@@ -32,8 +32,10 @@ class Smoothed(NamedTuple):
     iterations: steps tried; converged: the last relative cost decrease was under ``tol``;
     noise_scales: the ``NoiseScales`` used (estimated ones with ``calibrate_rounds``);
     visits: ``Visits`` with ``visit_gap`` (each landmark is then at its largest visit), else None;
-    redundancy: (4,) each noise group's redundancy r_g (its degrees of freedom,
-    ``solver.variance_factors``) in the last ``calibrate_rounds`` round, else None.
+    redundancy: (4,) each noise group's redundancy r_g (``solver.variance_factors``) in the
+    last ``calibrate_rounds`` round, else None; degrees_of_freedom: (4,) the degrees of
+    freedom of each group's variance factor, the four estimated together (nu_g <= r_g,
+    ``solver.variance_factors``), likewise.
     """
 
     path: np.ndarray
@@ -45,6 +47,7 @@ class Smoothed(NamedTuple):
     noise_scales: NoiseScales = NoiseScales()
     visits: Visits | None = None
     redundancy: np.ndarray | None = None
+    degrees_of_freedom: np.ndarray | None = None
 
 
 def _check_inputs(start_pose, path, odometry, z, landmark_of_obs, steps: int):
@@ -124,11 +127,12 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
                                  int(landmark_of_obs.max(initial=-1)) + 1)
     solve = functools.partial(solver.levenberg_marquardt, iterations=iterations, tol=tol,
                               damping=damping)
-    problem, scales, redundancy, (path, landmark, costs, step, converged) = (
+    problem, scales, components, (path, landmark, costs, step, converged) = (
         _solve_and_calibrate(base, scales, path, landmark, calibrate_rounds, solve))
+    redundancy, dof = (None, None) if components is None else components[1:]
     if visit_gap is None:
         return Smoothed(path, landmark, landmark_of_obs, costs, step, converged, scales,
-                        redundancy=redundancy)
+                        redundancy=redundancy, degrees_of_freedom=dof)
     # Split from the merged solution: every link starts satisfied, at the least-squares
     # compromise, and the redescending loss then lets go of the ones that stay stretched.
     visit_of_obs, visit_landmark, links = split_visits(landmark_of_obs, visit_gap,
@@ -144,7 +148,7 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
     return Smoothed(path, largest_visit(visit_position, visit_of_obs, visit_landmark),
                     landmark_of_obs, costs, step, converged, scales,
                     Visits(visit_position, visit_of_obs, visit_landmark, links, link_weight),
-                    redundancy)
+                    redundancy, dof)
 
 
 def _check_options(iterations, calibrate_rounds, huber, scales, visit_gap, link_std,
@@ -173,27 +177,26 @@ def _base_problem(start_pose, odometry, z, landmark_of_obs, params: Params,
 
 def _solve_and_calibrate(base: Problem, scales: NoiseScales, path, landmark, rounds: int,
                          solve):
-    """(problem, scales, redundancy, ``solve``'s result): solve at ``scales``, then ``rounds``
+    """(problem, scales, components, ``solve``'s result): solve at ``scales``, then ``rounds``
     times re-estimate the scales from the residuals (``solver.variance_factors``) and solve
-    again. redundancy: (4,) of the last round (None without rounds).
+    again. components: the last round's ``VarianceComponents`` (None without rounds).
 
     One ``Factorizer`` serves every solve: the associations fix the sparsity pattern.
     """
     factorize = solver.Factorizer()
     problem = rescaled(base, scales)
     result = solve(problem, path, landmark, factorize=factorize)
-    redundancy = None
+    components = None
     for _ in range(rounds):
         path, landmark = result[:2]
         residual, jacobian, _ = linearize(problem, path, landmark)
         components = solver.variance_factors(residual, jacobian, len(path), len(base.obs_t),
                                              factorize=factorize)
-        redundancy = components.redundancy
         scales = NoiseScales(*(float(v) for v in
                                np.asarray(scales) * np.sqrt(components.factor)))
         problem = rescaled(base, scales)
         result = solve(problem, path, landmark, factorize=factorize)
-    return problem, scales, redundancy, result
+    return problem, scales, components, result
 
 
 def smooth_lineage(start_pose, lineage_path: LineagePath, odometry, z, params: Params,

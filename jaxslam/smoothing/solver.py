@@ -107,10 +107,13 @@ def group_rows(steps: int, num_obs: int):
 
 class VarianceComponents(NamedTuple):
     """Per noise group (heading, translation, range, bearing): factor (4,), the variance
-    factor (e_g^T e_g) / r_g, and redundancy (4,), r_g (``variance_factors``)."""
+    factor (e_g^T e_g) / r_g; redundancy (4,), r_g; degrees_of_freedom (4,), nu_g =
+    1 / (S^-1)_gg, those of the factor with all four estimated from the same residuals
+    (``variance_factors``)."""
 
     factor: np.ndarray
     redundancy: np.ndarray
+    degrees_of_freedom: np.ndarray
 
 
 def variance_factors(residual, jacobian, steps: int, num_obs: int, probes: int = 16,
@@ -130,8 +133,21 @@ def variance_factors(residual, jacobian, steps: int, num_obs: int, probes: int =
     / probes <= 2 ||I - P_g||_F^2 / probes <= 2 r_g / probes (the eigenvalues of I - P_g lie
     in [0, 1], as H >= J_g^T J_g). So the error is at most sqrt(2 r_g / probes), and a small
     redundancy is resolved as well as a large one (Victoria Park's first M-step: 2,531.9 of
-    7,230 heading rows with 16 probes, 2,529.6 with 256). It is clipped at 1. ``factorize``: the problem's ``Factorizer`` (a new one
-    when None). Returns ``VarianceComponents``.
+    7,230 heading rows with 16 probes, 2,529.6 with 256). It is clipped at 1.
+
+    The factors' degrees of freedom. With R = I - J H^-1 J^T (the residuals are e = R eps)
+    and E_g the rows of group g, Cov(e^T E_g e, e^T E_h e) = 2 S_gh for Gaussian noise at the
+    assumed scales, S_gh = tr(E_g R E_h R); the variance components at their fixed point solve
+    S theta = q (q_g = e^T E_g e; sum_h S_gh = r_g, so at theta = 1 this is the factor above),
+    hence Cov(theta) = 2 S^-1 (Koch, "Parameter Estimation and Hypothesis Testing in Linear
+    Models", section 3.6; Forstner 1979). nu_g = 1 / (S^-1)_gg, so that the factor's relative
+    error is sqrt(2 / nu_g): nu_g <= S_gg <= r_g, smaller where the path shares a move's
+    error with the observations (on the simulated smooth loops of
+    ``experiments/self_calibration.py`` at the true noise: heading r_g 79-83, S_gg 41-45,
+    nu_g about 40, and the chi-square figure 0.08 becomes 0.11). S comes from the same probes:
+    for z on the rows of g, E[|E_h R z|^2] = S_hg (error at most sqrt(2 S_hg / probes), as
+    above), averaged with S_gh. Groups without rows get nu_g = r_g = 1. ``factorize``: the
+    problem's ``Factorizer`` (a new one when None). Returns ``VarianceComponents``.
     """
     hessian = jacobian.T @ jacobian
     # A landmark index no observation uses has an empty column; the tiny ridge keeps H
@@ -140,13 +156,35 @@ def variance_factors(residual, jacobian, steps: int, num_obs: int, probes: int =
         np.full(hessian.shape[0], 1e-12 * float(np.mean(hessian.diagonal()))))).tocsc()
     solve = (Factorizer() if factorize is None else factorize)(hessian)
     rng = np.random.default_rng(0)
+    groups = group_rows(steps, num_obs)
     factors, redundancies = [], []
-    for rows in group_rows(steps, num_obs):
+    coupling = np.zeros((len(groups), len(groups)))  # S_hg, probes on g
+    for g, rows in enumerate(groups):
         probe = np.zeros((jacobian.shape[0], probes))
         probe[rows] = rng.choice([-1.0, 1.0], size=(rows.size, probes))
         projected = jacobian.T @ probe  # (n, probes), one solve for all probes
-        trace = float(np.sum(projected * solve(projected))) / probes
+        solved = solve(projected)
+        trace = float(np.sum(projected * solved)) / probes
         redundancy = max(rows.size - trace, 1.0)
         factors.append(float(np.sum(residual[rows] ** 2) / redundancy))
         redundancies.append(redundancy)
-    return VarianceComponents(np.asarray(factors), np.asarray(redundancies))
+        kept = probe - jacobian @ solved  # R z, (R, probes)
+        coupling[:, g] = [float(np.sum(kept[other] ** 2)) / probes for other in groups]
+    redundancies = np.asarray(redundancies)
+    return VarianceComponents(np.asarray(factors), redundancies,
+                              factor_degrees_of_freedom(0.5 * (coupling + coupling.T),
+                                                        redundancies))
+
+
+def factor_degrees_of_freedom(coupling, redundancy):
+    """(G,) nu_g = 1 / (S^-1)_gg of the groups with a positive S_gg (``variance_factors``),
+    within [1, r_g]; r_g for the others. coupling: (G, G) S; redundancy: (G,) r_g."""
+    coupling, redundancy = np.asarray(coupling, np.float64), np.asarray(redundancy, np.float64)
+    present = np.diag(coupling) > 0.0
+    dof = redundancy.copy()
+    if present.any():
+        inverse = np.linalg.pinv(coupling[np.ix_(present, present)])
+        diagonal = np.diag(inverse)
+        dof[present] = np.where(diagonal > 0.0, 1.0 / np.where(diagonal > 0.0, diagonal, 1.0),
+                                1.0)
+    return np.clip(dof, 1.0, np.maximum(redundancy, 1.0))
