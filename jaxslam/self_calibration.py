@@ -84,7 +84,8 @@ move's error where the observations pin each pose loosely: the motion groups kep
 34-50 of 250 heading rows and 41-72 of 500 translation rows at the first M-step on simulated
 loops of ``experiments/self_calibration.py``. On Victoria Park the heading group kept about
 2,500 of 7,230 at the first M-step, but in a calibration with 640 map slots it fell to its
-clip of 1 at a later one, and the stated error to +-146 %: once EM has made the heading
+clip of 1 at a later one, and the stated error to +-146 % (with r_g as the degrees of
+freedom, before ``degrees_of_freedom``): once EM has made the heading
 noise small against what the observations resolve, the odometry alone fixes each pose's
 heading and the heading rows are all absorbed (a trace error of at most sqrt(2 r_g / 16),
 ``smoothing.solver.variance_factors``, so this is the smoother's answer, not the probe's
@@ -460,7 +461,8 @@ def loose_interval_warnings(relative_std: dict) -> list[str]:
     """Plain-word warnings for the noise groups (``NOISE_GROUPS``) whose stated 95 % interval,
     1 +- 1.96 ``relative_std``, is wider than +-``LOOSE_INTERVAL``: the log barely determines
     them, most often because the smoothed path absorbs the group's error (few degrees of
-    freedom; Victoria Park's heading noise: +-92 %, docs/results.md, self_calibration). A
+    freedom; Victoria Park's heading noise: +-92-93 % with r_g as the degrees of freedom,
+    docs/results.md, self_calibration). A
     group with no finite figure is not named (it was not fitted)."""
     out = []
     for group in NOISE_GROUPS:

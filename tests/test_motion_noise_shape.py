@@ -10,28 +10,58 @@ import pytest
 
 from jaxslam import smoothing
 from jaxslam.calibration_residuals import Residuals
-from jaxslam.noise_fit import motion_noise_update, unit_mean_square
+from jaxslam.noise_fit import (BURST_LIMITS, clipped_core, fit_bursts, motion_noise_update,
+                               unit_mean_square)
 
 CORE = np.array([0.01, 0.04, 0.01])  # core std of rot1, trans, rot2
 EPS, KAPPA = 0.1, 4.0  # burst share and scale of the simulated moves
 NO_BURSTS = (0.0, 5.0)
 
 
-def test_unit_mean_square_against_numpy():
+def test_unit_mean_square_scales_each_column_to_one():
+    """Each column ends at mean square 1 whatever its scale, and the result does not depend
+    on the input's scale (the shape fits see the shape only)."""
     rng = np.random.default_rng(0)
     white = rng.standard_normal((50, 2)) * [0.3, 2.0]
     out = unit_mean_square(white)
-    expected = white / np.sqrt(np.mean(white**2, axis=0))
-    np.testing.assert_allclose(out, expected, rtol=1e-12)
     np.testing.assert_allclose(np.mean(out**2, axis=0), 1.0, rtol=1e-12)
+    np.testing.assert_allclose(unit_mean_square(white * [7.0, 0.01]), out, rtol=1e-12)
+    # float64 reference of one entry
+    assert out[3, 1] == pytest.approx(white[3, 1] / np.sqrt(np.mean(white[:, 1] ** 2)),
+                                      rel=1e-12)
 
 
-def test_unit_mean_square_keeps_a_zero_column():
-    """A column of zeros (no residual left) stays zero instead of turning into NaN."""
+def test_unit_mean_square_edges():
+    """A column of zeros stays zero (no NaN); non-finite entries stay as they are and do not
+    enter the other entries' scale."""
     white = np.c_[np.zeros(10), np.arange(10.0)]
     out = unit_mean_square(white)
-    assert np.all(out[:, 0] == 0.0)
-    assert np.all(np.isfinite(out))
+    assert np.all(out[:, 0] == 0.0) and np.all(np.isfinite(out))
+    with_nan = np.r_[white, [[np.nan, np.inf]]]
+    out_nan = unit_mean_square(with_nan)
+    np.testing.assert_allclose(out_nan[:10], out, rtol=1e-12)
+    assert np.isnan(out_nan[10, 0]) and np.isinf(out_nan[10, 1])
+
+
+def test_clipped_core_keeps_the_second_moment():
+    """(1 - eps) a^2 + eps (kappa a)^2 = m2 for the returned core, against float64 NumPy."""
+    for m2, eps, kappa in [(1.0, 0.05, 10.0), (0.3, 0.25, 2.0), (2.0, 0.0, 5.0)]:
+        a = clipped_core(m2, eps, kappa)
+        assert (1 - eps) * a**2 + eps * (kappa * a) ** 2 == pytest.approx(m2, rel=1e-12)
+
+
+def test_a_clipped_burst_scale_keeps_the_variance():
+    """Bursts 20x the core (share 0.05) are clipped to the limit's scale 10: the core grows
+    so that the mixture keeps the residuals' mean square (before: the core of the 20x
+    mixture was kept, and with it 0.44 of the variance)."""
+    rng = np.random.default_rng(3)
+    scale = np.where(rng.random(4000) < 0.05, 20.0, 1.0)
+    white = rng.standard_normal((4000, 2)) * scale[:, None]
+    eps, core, kappa = fit_bursts(white)
+    assert kappa == BURST_LIMITS[1]
+    second_moment = np.mean(np.sum(white**2, axis=1)) / 2
+    total = (1 - eps) * core**2 + eps * (kappa * core) ** 2
+    assert total == pytest.approx(second_moment, rel=1e-9)
 
 
 def _shrunk_residuals(shrink: float, bursts: bool, moves: int = 3000, seed: int = 1):
@@ -54,25 +84,44 @@ def _shrunk_residuals(shrink: float, bursts: bool, moves: int = 3000, seed: int 
 @pytest.mark.parametrize("shrink", [1.0, 0.5, 0.2])
 def test_bursts_and_core_do_not_depend_on_the_shrinkage(shrink):
     """Burst-mixture moves (eps 0.1, kappa 4) with their residuals shrunk to 1, 1/4 and 1/25
-    of the variance: the fitted core std, share and scale are those of the noise. 3000 moves:
-    the core std's sampling error is about 1.5 %, the share's about 0.006; 10 % and 0.03 are
-    over five of them (the mixture fit adds little at a 4x scale ratio). Fitted to the shrunk
-    residuals themselves, the core came out at ``shrink`` times the truth."""
+    of the variance: the fitted core std, share and scale are those of the noise. Spread of
+    the three over 20 seeds of 3000 moves (shrink 0.5, measured): core std 3.6 %, share
+    0.008, scale 0.12; the bounds 12 %, 0.03 and 0.4 are 3.3-3.8 of them. Fitted to the
+    shrunk residuals themselves, the core came out at ``shrink`` times the truth."""
     res, _ = _shrunk_residuals(shrink, bursts=True)
     rows, eps, kappa, fitted = motion_noise_update(res, smoothing.NoiseScales(), NO_BURSTS)
     assert fitted
     std = rows.sum(axis=1)  # features are ones: each std is its row's sum
-    np.testing.assert_allclose(std, CORE, rtol=0.10)
+    np.testing.assert_allclose(std, CORE, rtol=0.12)
     assert abs(eps - EPS) < 0.03
     assert abs(kappa - KAPPA) < 0.4
 
 
 @pytest.mark.parametrize("shrink", [1.0, 0.3])
 def test_gaussian_moves_keep_the_variance_components_scale(shrink):
-    """Gaussian moves: no bursts, and the std is the scale the variance components state
-    (here the truth) within the tail factor's sampling error (its 95 % quantile of 3000
-    chi-square-1 samples: about 4 % in variance; 5 % in std)."""
+    """Gaussian moves, shrunk evenly: no bursts, and the std is the scale the variance
+    components state (here the truth). The tail factor max(1, q95 / 3.84) can only widen:
+    its 95 % quantile of 3000 chi-square-1 samples has a sampling error of about 3.5 % in
+    variance, 1.7 % in std, so 5 % is three of those. (This guards the no-burst branch
+    against widening; the old code passed it too, as an even shrink leaves the shape.)"""
     res, total = _shrunk_residuals(shrink, bursts=False)
     rows, eps, kappa, fitted = motion_noise_update(res, smoothing.NoiseScales(), NO_BURSTS)
     assert not fitted and (eps, kappa) == NO_BURSTS
     np.testing.assert_allclose(rows.sum(axis=1), total, rtol=0.05)
+
+
+@pytest.mark.xfail(strict=True, reason="known limitation: one mean-square factor a column "
+                   "corrects the average shrinkage, not each move's (noise_fit."
+                   "unit_mean_square)")
+def test_uneven_shrinkage_is_not_read_as_bursts():
+    """Gaussian moves whose residuals keep uneven shares R_ii of their variance are a scale
+    mixture once shrunk; the fit should still find no bursts. Half the moves at 0.05 and half
+    at 0.85 (a path whose observations are dense on some stretches and absent on others):
+    bursts were fitted on 10 of 10 seeds (share 0.25, scale 4.1, core 0.45 of the truth;
+    shares uniform in 0.05-0.85: none of 10). Kept as an expected failure until the M-step
+    divides each residual by sqrt(R_ii)."""
+    res, _ = _shrunk_residuals(1.0, bursts=False)
+    share = np.where(np.random.default_rng(7).random(len(res.move_error)) < 0.5, 0.05, 0.85)
+    res = res._replace(move_error=res.move_error * np.sqrt(share)[:, None])
+    _, _, _, fitted = motion_noise_update(res, smoothing.NoiseScales(), NO_BURSTS)
+    assert not fitted

@@ -315,8 +315,9 @@ def test_factor_degrees_of_freedom_give_the_spread_of_the_fixed_point():
     others, 30 unknowns), iterated to their fixed point over 400 noise draws: the spread of
     the heading variance is sqrt(2 / nu) with nu = 1 / (S^-1)_gg (``factor_degrees_of_freedom``),
     not sqrt(2 / r_g) (measured: 0.58 against predicted 0.58 and 0.45 for r_g, on 300 draws of
-    a first probe). 400 draws give the spread to about 5 % (chi-square-like draws); 15 % is
-    three of those, and the two predictions lie 25 % apart."""
+    a first probe; the review found 0.98-1.04 of the prediction on seeds 1-3). 400 draws give
+    the spread to about 5 % (chi-square-like draws); 15 % is three of those. The two
+    predictions lie 25-28 % apart; the second bound leaves a margin of 10 %."""
     rng = np.random.default_rng(0)
     design = rng.normal(size=(60, 30))
     heading = np.arange(0, 60, 3)
@@ -330,17 +331,24 @@ def test_factor_degrees_of_freedom_give_the_spread_of_the_fixed_point():
     spread = np.std(draws)
     predicted = np.sqrt(2 / np.mean(dofs))
     assert abs(spread / predicted - 1) < 0.15, (spread, predicted)
-    assert predicted > 1.2 * np.sqrt(2 / np.mean(redundancies))
+    assert predicted > 1.15 * np.sqrt(2 / np.mean(redundancies))
     assert abs(np.mean(draws) - 1) < 0.15  # the fixed point is unbiased within its spread
 
 
 def test_factor_degrees_of_freedom_edges():
-    """A group without rows (S_gg = 0) keeps its redundancy; a singular S (two groups that
-    cannot be told apart) still gives finite values within [1, r_g]; no coupling: S_gg."""
+    """No coupling: nu = S_gg; a group without rows (S_gg = 0) keeps its redundancy; a
+    singular or nearly singular S (two groups the residuals cannot tell apart) and a
+    non-finite one give the least, 1; the result stays within [1, r_g]."""
     dof = solver.factor_degrees_of_freedom(np.diag([40.0, 0.0]), [80.0, 1.0])
     np.testing.assert_allclose(dof, [40.0, 1.0])
-    dof = solver.factor_degrees_of_freedom(np.ones((2, 2)) * 10.0, [20.0, 20.0])
-    assert np.all(np.isfinite(dof)) and np.all((dof >= 1.0) & (dof <= 20.0))
+    for singular in (np.ones((2, 2)) * 10.0, np.array([[10.0, 10.0], [10.0, 10.0 + 1e-12]]),
+                     np.array([[10.0, np.nan], [np.nan, 10.0]])):
+        np.testing.assert_allclose(solver.factor_degrees_of_freedom(singular, [20.0, 20.0]),
+                                   [1.0, 1.0])
+    # coupled but separable: 1 / (S^-1)_gg against float64 NumPy
+    coupling = np.array([[40.0, 15.0], [15.0, 300.0]])
+    np.testing.assert_allclose(solver.factor_degrees_of_freedom(coupling, [80.0, 400.0]),
+                               1.0 / np.diag(np.linalg.inv(coupling)), rtol=1e-12)
     np.testing.assert_allclose(
         solver.factor_degrees_of_freedom(np.diag([0.5, 300.0]), [0.5, 400.0]), [1.0, 300.0])
 
@@ -651,9 +659,9 @@ def test_noise_calibration_recovers_the_observation_noise():
         rows = np.array([200, 400, np.sum(ids >= 0), np.sum(ids >= 0)])
         assert out.redundancy.shape == (4,)
         assert np.all((out.redundancy > 0) & (out.redundancy < rows)), out.redundancy
+        # the factors' degrees of freedom (checked against the dense S in
+        # test_variance_factors_match_the_exact_redundancy) come with them
         assert out.degrees_of_freedom.shape == (4,)
-        assert np.all((out.degrees_of_freedom >= 1) & (out.degrees_of_freedom
-                                                        <= out.redundancy))
         unknowns = 3 * 200 + 2 * (ids.max() + 1)
         np.testing.assert_allclose(out.redundancy.sum(), rows.sum() - unknowns, rtol=0.1)
     plain = smoothing.smooth_path(truth[0], out.path, odometry, z, ids, params)

@@ -129,7 +129,8 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
                               damping=damping)
     problem, scales, components, (path, landmark, costs, step, converged) = (
         _solve_and_calibrate(base, scales, path, landmark, calibrate_rounds, solve))
-    redundancy, dof = (None, None) if components is None else components[1:]
+    redundancy, dof = ((None, None) if components is None
+                       else (components.redundancy, components.degrees_of_freedom))
     if visit_gap is None:
         return Smoothed(path, landmark, landmark_of_obs, costs, step, converged, scales,
                         redundancy=redundancy, degrees_of_freedom=dof)

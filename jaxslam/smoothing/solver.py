@@ -123,17 +123,18 @@ def variance_factors(residual, jacobian, steps: int, num_obs: int, probes: int =
     e are the whitened residuals (R,) at the solution, J (R, n) their Jacobian and
     r_g = n_g - tr(J_g H^-1 J_g^T) the group's redundancy (H = J^T J), the trace by
     Hutchinson's estimator with ``probes`` fixed-seed Rademacher vectors. A factor of 1 means
-    the group's noise is as assumed. r_g is also the group's degrees of freedom: for Gaussian
-    noise e_g^T e_g / sigma_g^2 is about chi-square with r_g of them, so the factor's relative
-    error is sqrt(2 / r_g), not sqrt(2 / n_g). The path absorbs the rest: where the
+    the group's noise is as assumed. r_g, not n_g, is what the residuals keep: E[e_g^T e_g] =
+    r_g sigma_g^2 at the assumed scales (the factor's degrees of freedom are fewer still,
+    below). The path absorbs the rest: where the
     observations pin each pose less well than one move's odometry does, most of a move's
     error is explained by the path and r_g is a small part of n_g. The trace's own error:
     with Rademacher probes z (z^T z = n_g exactly) the estimate is n_g - mean(z^T P_g z) =
     mean(z^T (I - P_g) z), P_g = J_g H^-1 J_g^T, whose variance is 2 sum_{i != j} (P_g)_ij^2
     / probes <= 2 ||I - P_g||_F^2 / probes <= 2 r_g / probes (the eigenvalues of I - P_g lie
-    in [0, 1], as H >= J_g^T J_g). So the error is at most sqrt(2 r_g / probes), and a small
-    redundancy is resolved as well as a large one (Victoria Park's first M-step: 2,531.9 of
-    7,230 heading rows with 16 probes, 2,529.6 with 256). It is clipped at 1.
+    in [0, 1], as H >= J_g^T J_g). So the error is at most sqrt(2 r_g / probes) however
+    large n_g is: a redundancy of a few is resolved to about +-0.5 with 16 probes, not lost in
+    the noise of n_g (Victoria Park's first M-step: 2,531.9 of 7,230 heading rows with 16
+    probes, 2,529.6 with 256). It is clipped at 1.
 
     The factors' degrees of freedom. With R = I - J H^-1 J^T (the residuals are e = R eps)
     and E_g the rows of group g, Cov(e^T E_g e, e^T E_h e) = 2 S_gh for Gaussian noise at the
@@ -176,15 +177,21 @@ def variance_factors(residual, jacobian, steps: int, num_obs: int, probes: int =
                                                         redundancies))
 
 
-def factor_degrees_of_freedom(coupling, redundancy):
+def factor_degrees_of_freedom(coupling, redundancy, max_condition: float = 1e10):
     """(G,) nu_g = 1 / (S^-1)_gg of the groups with a positive S_gg (``variance_factors``),
-    within [1, r_g]; r_g for the others. coupling: (G, G) S; redundancy: (G,) r_g."""
+    within [1, r_g]; r_g for the others (no rows). coupling: (G, G) S; redundancy: (G,) r_g.
+
+    An S that is singular or nearly so (condition number over ``max_condition``, or not
+    finite) has groups the residuals cannot tell apart: their factors' variance is unbounded,
+    so every group with rows gets the least, nu = 1."""
     coupling, redundancy = np.asarray(coupling, np.float64), np.asarray(redundancy, np.float64)
     present = np.diag(coupling) > 0.0
     dof = redundancy.copy()
+    block = coupling[np.ix_(present, present)]
     if present.any():
-        inverse = np.linalg.pinv(coupling[np.ix_(present, present)])
-        diagonal = np.diag(inverse)
-        dof[present] = np.where(diagonal > 0.0, 1.0 / np.where(diagonal > 0.0, diagonal, 1.0),
-                                1.0)
+        dof[present] = 1.0
+        if np.all(np.isfinite(block)) and np.linalg.cond(block) < max_condition:
+            diagonal = np.diag(np.linalg.inv(block))
+            positive = diagonal > 0.0
+            dof[np.flatnonzero(present)[positive]] = 1.0 / diagonal[positive]
     return np.clip(dof, 1.0, np.maximum(redundancy, 1.0))
