@@ -235,14 +235,14 @@ def unit_mean_square(white):
     The variance components have set each group's variance; the residuals still tell the
     shape of its distribution (a burst mixture, a tail), so the shape fits take them at unit
     mean square, and the mixture's core and bursts then share the variance components' total
-    (``fit_bursts``, ``clipped_core``). Limitation: one factor a column corrects the
-    average shrinkage, not each move's (row i keeps R_ii of its variance, R = I - J H^-1
-    J^T), so an uneven R_ii alone makes Gaussian residuals a scale mixture, which
-    ``fit_bursts`` can read as bursts: with half the moves at R_ii = 0.05 and half at 0.85 it
-    fitted a share of 0.25 with a core of 0.45 (``tests/test_motion_noise_shape.py`` keeps
-    that case as an expected failure; shares spread evenly over 0.05-0.85 were not read as
-    bursts). docs/results.md (self_calibration, "Bursts fitted to the shrunk residuals") has
-    the measurements.
+    (``fit_bursts``, ``clipped_core``). One factor a column corrects the average shrinkage,
+    not each move's (row i keeps R_ii of its variance, R = I - J H^-1 J^T), so an uneven
+    R_ii alone makes Gaussian residuals a scale mixture, which ``fit_bursts`` can read as
+    bursts (half the moves at R_ii = 0.05 and half at 0.85: a share of 0.25 with a core of
+    0.45; ``tests/test_motion_noise_shape.py``). Dividing each residual by sqrt(R_ii)
+    removed them, and the calibrated filter did worse on every held-out row measured: the
+    bursts give the motion proposal a tail it uses (docs/results.md, self_calibration,
+    "Bursts fitted to the shrunk residuals").
     """
     white = np.asarray(white, np.float64)
     square = np.where(np.isfinite(white), white, 0.0) ** 2
