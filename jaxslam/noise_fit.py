@@ -204,22 +204,13 @@ def fit_bursts(white, iterations: int = 50, min_share: float = 0.01, min_ratio: 
     if eps < min_share or b / a < min_ratio or gain <= np.log(count):
         return None
     # A burst wider than BURST_LIMITS' scale is an outlier no particle set of a few hundred
-    # can sample, and a burst share above its limit is a mis-fit core: both are clipped.
-    share, ratio = min(eps, BURST_LIMITS[0]), min(b / a, BURST_LIMITS[1])
-    if (share, ratio) != (eps, b / a):
-        a = clipped_core(np.mean(norm2) / dim, share, ratio)
-    return share, a, ratio
-
-
-def clipped_core(second_moment: float, share: float, ratio: float) -> float:
-    """The core std a that keeps the residuals' second moment m2 (per dimension) with a
-    clipped burst share eps and scale kappa: (1 - eps) a^2 + eps (kappa a)^2 = m2.
-
-    The mixture's own maximum-likelihood fixed point keeps m2 (its M-step sums the squares
-    over both components); a clip of eps or kappa alone would drop the variance the clipped
-    part carried (a burst scale of 20 clipped to 10 with the core kept: 0.44 of m2 at
-    eps = 0.05), so the core takes it back."""
-    return float(np.sqrt(second_moment / (1.0 - share + share * ratio**2)))
+    # can sample, and a burst share above its limit is a mis-fit core: both are clipped, and
+    # the core stays the fitted one. The mixture then carries less than the residuals' second
+    # moment (a burst scale of 20 clipped to 10: 0.44 of it at eps = 0.05): the clipped part
+    # is left to the filter as outliers, not spread over every move's core. A version that
+    # moved it into the core made MRCLAM's five robots worse on both seeds run
+    # (docs/results.md, self_calibration, "Bursts fitted to the shrunk residuals").
+    return min(eps, BURST_LIMITS[0]), a, min(b / a, BURST_LIMITS[1])
 
 
 # --------------------------------------------------------------------------------------------
@@ -235,7 +226,7 @@ def unit_mean_square(white):
     The variance components have set each group's variance; the residuals still tell the
     shape of its distribution (a burst mixture, a tail), so the shape fits take them at unit
     mean square, and the mixture's core and bursts then share the variance components' total
-    (``fit_bursts``, ``clipped_core``). One factor a column corrects the average shrinkage,
+    (``fit_bursts``; less what its limits clip). One factor a column corrects the average shrinkage,
     not each move's (row i keeps R_ii of its variance, R = I - J H^-1 J^T), so an uneven
     R_ii alone makes Gaussian residuals a scale mixture, which ``fit_bursts`` can read as
     bursts (half the moves at R_ii = 0.05 and half at 0.85: a share of 0.25 with a core of

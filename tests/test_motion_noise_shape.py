@@ -10,8 +10,7 @@ import pytest
 
 from jaxslam import smoothing
 from jaxslam.calibration_residuals import Residuals
-from jaxslam.noise_fit import (BURST_LIMITS, clipped_core, fit_bursts, motion_noise_update,
-                               unit_mean_square)
+from jaxslam.noise_fit import BURST_LIMITS, fit_bursts, motion_noise_update, unit_mean_square
 
 CORE = np.array([0.01, 0.04, 0.01])  # core std of rot1, trans, rot2
 EPS, KAPPA = 0.1, 4.0  # burst share and scale of the simulated moves
@@ -43,25 +42,18 @@ def test_unit_mean_square_edges():
     assert np.isnan(out_nan[10, 0]) and np.isinf(out_nan[10, 1])
 
 
-def test_clipped_core_keeps_the_second_moment():
-    """(1 - eps) a^2 + eps (kappa a)^2 = m2 for the returned core, against float64 NumPy."""
-    for m2, eps, kappa in [(1.0, 0.05, 10.0), (0.3, 0.25, 2.0), (2.0, 0.0, 5.0)]:
-        a = clipped_core(m2, eps, kappa)
-        assert (1 - eps) * a**2 + eps * (kappa * a) ** 2 == pytest.approx(m2, rel=1e-12)
-
-
-def test_a_clipped_burst_scale_keeps_the_variance():
-    """Bursts 20x the core (share 0.05) are clipped to the limit's scale 10: the core grows
-    so that the mixture keeps the residuals' mean square (before: the core of the 20x
-    mixture was kept, and with it 0.44 of the variance)."""
+def test_a_clipped_burst_scale_keeps_the_fitted_core():
+    """Bursts 20x a unit core (share 0.05) are clipped to the limit's scale 10, and the core
+    stays the fitted one: the clipped variance is left to the filter as outliers, not spread
+    over every move (``fit_bursts``). 4000 moves: the core's sampling error is about 1.2 %;
+    5 % is four of those."""
     rng = np.random.default_rng(3)
     scale = np.where(rng.random(4000) < 0.05, 20.0, 1.0)
     white = rng.standard_normal((4000, 2)) * scale[:, None]
     eps, core, kappa = fit_bursts(white)
     assert kappa == BURST_LIMITS[1]
-    second_moment = np.mean(np.sum(white**2, axis=1)) / 2
-    total = (1 - eps) * core**2 + eps * (kappa * core) ** 2
-    assert total == pytest.approx(second_moment, rel=1e-9)
+    assert core == pytest.approx(1.0, rel=0.05)
+    assert eps == pytest.approx(0.05, abs=0.015)
 
 
 def _shrunk_residuals(shrink: float, bursts: bool, moves: int = 3000, seed: int = 1):
