@@ -226,9 +226,9 @@ def unit_mean_square(white):
     The variance components have set each group's variance; the residuals still tell the
     shape of its distribution (a burst mixture, a tail), so the shape fits take them at unit
     mean square, and the mixture's core and bursts then share the variance components' total
-    (``fit_bursts``; less what its limits clip). One factor a column corrects the average shrinkage,
-    not each move's (row i keeps R_ii of its variance, R = I - J H^-1 J^T), so an uneven
-    R_ii alone makes Gaussian residuals a scale mixture, which ``fit_bursts`` can read as
+    (``fit_bursts``; less what its limits clip). One factor a column corrects the average
+    shrinkage, not each move's (row i keeps R_ii of its variance, R = I - J H^-1 J^T), so an
+    uneven R_ii alone makes Gaussian residuals a scale mixture, which ``fit_bursts`` can read as
     bursts (half the moves at R_ii = 0.05 and half at 0.85: a share of 0.25 with a core of
     0.45; ``tests/test_motion_noise_shape.py``). Dividing each residual by sqrt(R_ii)
     removed them, and the calibrated filter did worse on every held-out row measured: the

@@ -158,12 +158,12 @@ class CalibrationInfo(NamedTuple):
       relative_std: dict group -> relative standard error of its std (module docstring),
         from the M-steps behind the returned settings: the sampling error of the group's
         residuals, with the smoother's degrees of freedom. On held-out simulated logs (32: 2
-        regimes x 2 log sets x 8) the truth lay within 1 +- 1.96 relative_std in 55 of
-        64 cases for the sensor groups and in 55 of 64 for the motion groups (with fitted
+        regimes x 2 log sets x 8) the truth lay within 1 +- 1.96 relative_std in 56 of
+        64 cases for the sensor groups and in 53 of 64 for the motion groups (with fitted
         bursts counted in the motion std; nominal about 61): on smooth loops EM's heading
         estimate can sit below the truth by more than that (docs/results.md,
-        self_calibration, "Bursts fitted to the shrunk residuals"). "radius": a fitted ``radius_noise``'s relative
-        error, by a bootstrap over the landmarks whose radii it used
+        self_calibration, "Bursts fitted to the shrunk residuals"). "radius": a fitted
+        ``radius_noise``'s relative error, by a bootstrap over the landmarks whose radii it used
         (``noise_fit.radius_noise_relative_error``; inf with a single such landmark). Empty
         when the starting settings are returned.
       samples: dict group -> number of samples the fit used (the M-steps behind the
