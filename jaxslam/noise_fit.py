@@ -218,8 +218,8 @@ def fit_bursts(white, iterations: int = 50, min_share: float = 0.01, min_ratio: 
 
 
 def unit_mean_square(white):
-    """(S, d) whitened residuals, each column divided by the root mean square of its finite
-    entries (a column of zeros is kept).
+    """(S, d) finite whitened residuals, each column divided by its root mean square (a
+    column of zeros is kept).
 
     A smoothed path absorbs part of every move's error: group g's residuals keep a mean
     square of about r_g / n_g of the noise variance (``smoothing.solver.variance_factors``).
@@ -236,9 +236,7 @@ def unit_mean_square(white):
     "Bursts fitted to the shrunk residuals").
     """
     white = np.asarray(white, np.float64)
-    square = np.where(np.isfinite(white), white, 0.0) ** 2
-    count = np.maximum(np.sum(np.isfinite(white), axis=0), 1)
-    rms = np.sqrt(np.sum(square, axis=0) / count)
+    rms = np.sqrt(np.mean(white**2, axis=0)) if len(white) else np.ones(white.shape[1:])
     return white / np.where(rms > 0.0, rms, 1.0)
 
 
@@ -269,9 +267,8 @@ def motion_noise_update(res: Residuals, scales: smoothing.NoiseScales,
     errors = res.move_error[moving]
     std = [features[i] @ rows[i] for i in range(3)]
     heading_error, heading_std = errors[:, 0] + errors[:, 2], np.hypot(std[0], std[2])
-    white = np.stack([heading_error / np.maximum(heading_std, STD_FLOOR),
-                      errors[:, 1] / np.maximum(std[1], STD_FLOOR)], 1)
-    white = unit_mean_square(white[np.all(np.isfinite(white), axis=1)])
+    white = unit_mean_square(np.stack([heading_error / np.maximum(heading_std, STD_FLOOR),
+                                       errors[:, 1] / np.maximum(std[1], STD_FLOOR)], 1))
     bursts = fit_bursts(white)
     if bursts is not None:
         eps, core, kappa = bursts

@@ -461,8 +461,7 @@ def loose_interval_warnings(relative_std: dict) -> list[str]:
     """Plain-word warnings for the noise groups (``NOISE_GROUPS``) whose stated 95 % interval,
     1 +- 1.96 ``relative_std``, is wider than +-``LOOSE_INTERVAL``: the log barely determines
     them, most often because the smoothed path absorbs the group's error (few degrees of
-    freedom; Victoria Park's heading noise: +-92-93 % with r_g as the degrees of freedom,
-    docs/results.md, self_calibration). A
+    freedom; Victoria Park's heading noise: +-92 %, docs/results.md, victoria_park). A
     group with no finite figure is not named (it was not fitted)."""
     out = []
     for group in NOISE_GROUPS:

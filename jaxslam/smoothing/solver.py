@@ -132,7 +132,7 @@ def variance_factors(residual, jacobian, steps: int, num_obs: int, probes: int =
     mean(z^T (I - P_g) z), P_g = J_g H^-1 J_g^T, whose variance is 2 sum_{i != j} (P_g)_ij^2
     / probes <= 2 ||I - P_g||_F^2 / probes <= 2 r_g / probes (the eigenvalues of I - P_g lie
     in [0, 1], as H >= J_g^T J_g). So the error is at most sqrt(2 r_g / probes) however
-    large n_g is: a redundancy of a few is resolved to about +-0.5 with 16 probes, not lost in
+    large n_g is: a redundancy of 2 is resolved to +-0.5 or better with 16 probes, not lost in
     the noise of n_g (Victoria Park's first M-step: 2,531.9 of 7,230 heading rows with 16
     probes, 2,529.6 with 256). It is clipped at 1.
 
