@@ -330,7 +330,7 @@ def associate(config: FilterConfig, params: Params, particle: Particles, match_p
                                params, config.boundary)
     radius_sq = ekf.radius_distance_sq(obs.radius[:, None], local.landmark_radius[None, :],
                                        local.radius_count[None, :], params)
-    allowed = vis.usable_obs[:, None] & vis.matchable[None, :]
+    allowed = vis.matching_obs[:, None] & vis.matchable[None, :]
     cost = association.association_cost(config.association, mahalanobis + radius_sq, allowed,
                                         obs.landmark_id, local.landmark_id, local.active)
     local_match, rounds = association.match(config.association, cost,

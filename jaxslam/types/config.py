@@ -9,7 +9,7 @@ MOTION_MODELS = ("odometry", "velocity", "ackermann")
 ASSOCIATIONS = ("stable", "greedy", "hungarian", "known")
 PROPOSALS = ("motion", "observation", "mixture")
 RESAMPLINGS = ("systematic", "stratified", "multinomial", "residual")
-BOUNDARIES = ("hard", "loose")
+BOUNDARIES = ("hard", "loose", "loose_match")
 MIXTURE_MODES = ("fixed", "adaptive")
 
 
@@ -50,7 +50,9 @@ class FilterConfig:
         the motion draws would rarely land where the observations put the pose
         (``step_propose.particle_ratio``).
       resampling: one of ``RESAMPLINGS``.
-      boundary: ``hard`` visibility limit or ``loose`` airlock (Geiser et al. 2023, section 3.1).
+      boundary: ``hard`` visibility limit, ``loose`` airlock (Geiser et al. 2023, section 3.1)
+        or ``loose_match``: the airlock for births and deaths only, its observations and ring
+        landmarks still matched (``landmarks`` module docstring).
       association_window: 0 (default) matches observations against every slot; N > 0 only
         against each particle's N nearest active landmarks (by predicted range). Landmarks
         outside the window are neither matched nor penalised, so choose N above the number of
