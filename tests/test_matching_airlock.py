@@ -50,19 +50,20 @@ def _reference_matchable(ranges, params):
     return (ranges >= float(params.min_range)) & (ranges <= float(params.max_range) - width)
 
 
-def _ring_case(ranges, factor, dtype=jnp.float64, window=0):
+def _ring_case(ranges, factor, dtype=jnp.float64, window=0, boundary="loose"):
     """One particle with a landmark at each of ``ranges`` (N,) straight ahead-ish of x_hat
     (bearings spread over +-0.6 rad), each observed exactly; the matching covariance is the
     motion prior's times ``factor`` (plus the heading std). With ``window`` > 0 the map has
     one empty slot more and the association is windowed to the ``window`` nearest landmarks
-    (``FilterConfig.association_window``)."""
+    (``FilterConfig.association_window``). ``boundary``: the paper's ``loose`` unless a
+    test says otherwise."""
     params = _params(dtype)
     ranges = np.asarray(ranges, np.float64)
     bearing = np.linspace(-0.6, 0.6, len(ranges))
     x_hat = np.array([0.0, 0.0, 0.0])
     trees = np.stack([ranges * np.cos(bearing), ranges * np.sin(bearing)], -1)
     config = FilterConfig(num_particles=1, max_landmarks=len(ranges) + (window > 0),
-                          max_obs=len(ranges), association_window=window)
+                          max_obs=len(ranges), association_window=window, boundary=boundary)
     state = mapped_state(config, trees, variance=LANDMARK_VARIANCE)
     particle = jax.tree.map(lambda a: a[0].astype(dtype) if a.dtype.kind == "f" else a[0],
                             state.particles)
@@ -83,12 +84,15 @@ RANGES = [11.99, 3.0, 8.0, 9.8, 10.5, 11.3, 11.9]
 
 @pytest.mark.parametrize("factor", [1.0, 64.0])
 @pytest.mark.parametrize("transform", ["eager", "jit"])
-def test_ring_widths_ignore_the_matching_pose_covariance(factor, transform):
+@pytest.mark.parametrize("boundary", ["loose", "loose_match"])
+def test_ring_widths_ignore_the_matching_pose_covariance(factor, transform, boundary):
     """``matchable`` equals the NumPy ring test without the pose covariance, for the core
     (factor 1) and the burst piece (factor kappa^2 = 64); every observation but the ring's is
     matched to its landmark (each lies exactly at its prediction), and the ring's is set aside
-    (it lies within its own width of the range's end)."""
-    config, params, particle, x_hat, obs, pose_cov = _ring_case(RANGES, factor)
+    (it lies within its own width of the range's end). With ``loose_match`` the same
+    observation is set aside (never born) but matched, with the ring's landmark matchable."""
+    config, params, particle, x_hat, obs, pose_cov = _ring_case(RANGES, factor,
+                                                                boundary=boundary)
 
     def run(particle, x_hat, obs, pose_cov):
         return associate(config, params, particle, x_hat, obs,
@@ -97,8 +101,10 @@ def test_ring_widths_ignore_the_matching_pose_covariance(factor, transform):
     found = (run if transform == "eager" else jax.jit(run))(particle, x_hat, obs, pose_cov)
     want = _reference_matchable(np.asarray(RANGES), params)
     assert want[1:].all() and not want[0]  # the case spans the ring's edge
-    np.testing.assert_array_equal(np.asarray(found.visibility.matchable), want)
-    np.testing.assert_array_equal(np.asarray(found.match), [-1, 1, 2, 3, 4, 5, 6])
+    ring_matched = boundary == "loose_match"
+    np.testing.assert_array_equal(np.asarray(found.visibility.matchable), want | ring_matched)
+    np.testing.assert_array_equal(np.asarray(found.match),
+                                  [0 if ring_matched else -1, 1, 2, 3, 4, 5, 6])
     np.testing.assert_array_equal(np.asarray(found.visibility.set_aside_obs), ~want)
 
 

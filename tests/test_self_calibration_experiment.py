@@ -149,7 +149,10 @@ def test_offline_error_closes_what_the_online_estimate_misses():
     level. The bound is the claim the docs make of the offline estimate (far better than
     online on such logs), not a tolerance: a single log's offline error is not always small
     (run 2 of these logs ends 4.3 m off offline; 0-2 of 8 logs a row in the docs' table over
-    0.5 m)."""
+    0.5 m). The paper's ``loose`` boundary is pinned: it throws away the observations in
+    its ring, which is what sends this run metres off online (with the default
+    ``loose_match`` the online estimate no longer fails here: docs/results.md, "Matching
+    across the airlock")."""
     import jax
 
     from experiments.self_calibration import make_log, score
@@ -158,7 +161,7 @@ def test_offline_error_closes_what_the_online_estimate_misses():
     params = true_params(2.0, 5.0)
     key_log, key_filter = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(500), 1))
     controls, obs, truth, trees = make_log(key_log, params, 0.3)
-    config = FilterConfig(num_particles=20, max_landmarks=96, max_obs=12)
+    config = FilterConfig(num_particles=20, max_landmarks=96, max_obs=12, boundary="loose")
     online, landmarks, _, _, offline = score(config, key_filter, params, controls, obs, truth,
                                               trees, offline=True)
     assert online > 1.0 and 0.0 <= offline < 0.25 * online

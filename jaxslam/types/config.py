@@ -51,8 +51,13 @@ class FilterConfig:
         (``step_propose.particle_ratio``).
       resampling: one of ``RESAMPLINGS``.
       boundary: ``hard`` visibility limit, ``loose`` airlock (Geiser et al. 2023, section 3.1)
-        or ``loose_match``: the airlock for births and deaths only, its observations and ring
-        landmarks still matched (``landmarks`` module docstring).
+        or ``loose_match`` (default): the airlock for births and deaths only, its
+        observations and ring landmarks still matched (``landmarks`` module docstring). The
+        paper's ``loose`` throws away every observation in a ring 5 range stds wide (22 % of
+        them at 5x Table 2's range noise, 10 % at 2x). On held-out simulated logs with the
+        true noise given, ``loose_match`` cut the median final error from 1.24 to 0.37 m
+        at 5x and from 0.62 to 0.17 m at 2x (docs/results.md, "Matching across the
+        airlock").
       association_window: 0 (default) matches observations against every slot; N > 0 only
         against each particle's N nearest active landmarks (by predicted range). Landmarks
         outside the window are neither matched nor penalised, so choose N above the number of
@@ -108,7 +113,7 @@ class FilterConfig:
     proposal: str = "observation"
     mixture_mode: str = "fixed"
     resampling: str = "systematic"
-    boundary: str = "loose"
+    boundary: str = "loose_match"
     max_match_rounds: int = 0
     association_window: int = 0
     match_pose_uncertainty: bool = True
