@@ -68,7 +68,9 @@ class StepInfo(NamedTuple):
     match_rounds: () int32 most Gale-Shapley rounds used by any particle.
     num_invalid_obs: () int32 observations masked out as malformed (NaN, negative range...).
     num_dropped_births: (P,) int32 new landmarks dropped because the map was full.
-    num_set_aside: (P,) int32 observations set aside in the airlock.
+    num_set_aside: (P,) int32 observations set aside in the airlock (never born; with
+      ``boundary="loose_match"`` they may still be matched, so this is not a count of
+      observations the filter left unused).
     mixture_ratio: () the phi used this step, averaged over the particles (0 for the motion
       proposal, 1 for observation; the adaptive mixture's phi is per particle).
     num_observation_draws: () int32 particles drawn from the observation proposal.

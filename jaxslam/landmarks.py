@@ -130,7 +130,8 @@ def may_take_part(pose, landmark_mean, landmark_cov, active, params: Params, bou
     sigma_r(r_m)^2 (the range entry of ``ekf``'s innovation covariance, computed by the same
     functions) and w_m = a sqrt(S_rr), a = ``airlock_sigmas``, a landmark takes part only in
     the region of ``visibility``: matchable (r_m <= R_max; r_m <= R_max - w_m when loose) or,
-    loose, in the ring (r_m <= R_max + w_m, where it may set an observation aside):
+    loose, in the ring (r_m <= R_max + w_m, where it may set an observation aside, and with
+    ``loose_match`` also be matched):
 
         hard:  r_m <= R_max
         loose, loose_match: r_m <= R_max + w_m

@@ -162,7 +162,8 @@ class MapUpdate(NamedTuple):
     particle: ``Particles`` without the P axis.
     birth_slot: (K,) int32 slot of the landmark each observation created, -1 for none.
     num_dropped: () int32 births that found no free slot (the map was full).
-    num_set_aside: () int32 observations set aside in the airlock (never born).
+    num_set_aside: () int32 observations set aside in the airlock (never born; with
+      ``loose_match`` possibly matched).
     """
 
     particle: Particles

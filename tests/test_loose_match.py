@@ -29,7 +29,9 @@ def reference_visibility(z, valid, active, pred_range, pred_bearing, s_rr, d2, p
 
     z: (K, 2); valid: (K,); active: (M,); pred_range, pred_bearing, s_rr: (M,) the predicted
     range, bearing and range variance of each landmark; d2: (K, M) squared distances.
-    Returns a dict of the ``Visibility`` fields.
+    Returns a dict of the ``Visibility`` fields (loose boundaries: also
+    ``set_aside_by_gate``, the observations set aside only because they gate with a ring
+    landmark).
     """
     p = {name: float(np.asarray(getattr(params, name))) for name in (
         "min_range", "max_range", "miss_range", "miss_bearing", "airlock_sigmas",
@@ -55,7 +57,7 @@ def reference_visibility(z, valid, active, pred_range, pred_bearing, s_rr, d2, p
     inside = active & in_min & (pred_range <= p["max_range"] - width)
     explained = np.any(gated & set_aside[:, None], axis=0)
     out = dict(usable_obs=obs & ~set_aside, set_aside_obs=set_aside, explained=explained,
-               expected=inside & may_miss)
+               expected=inside & may_miss, set_aside_by_gate=set_aside & ~obs_ring)
     if boundary == "loose":
         return dict(out, matchable=inside, matching_obs=obs & ~set_aside)
     return dict(out, matchable=inside | (lm_ring & in_min), matching_obs=obs)
@@ -63,13 +65,15 @@ def reference_visibility(z, valid, active, pred_range, pred_bearing, s_rr, d2, p
 
 def random_case(seed, num_obs=6, num_slots=8, saturated=False):
     """A pose at the origin, landmarks at 0.5-15 m (some near R_max = 12 m), observations of
-    some of them (noisy) and of nothing; range noise wide enough for a ring of about 1.5 m."""
+    some of them (noisy), of nothing, and one just inside its own ring edge of a ring
+    landmark; range noise wide enough for a ring of about 1.5 m."""
     rng = np.random.default_rng(seed)
     params = default_params(dtype=jnp.float64, max_range=12.0, range_noise=(0.025, 0.01),
                             bearing_noise=(0.0025, 0.001), range_std_floor=1e-4,
                             bearing_std_floor=1e-5, min_range=1.0, miss_bearing=1.2)
     ranges = rng.uniform(0.5, 15.0, num_slots)
     ranges[:3] = rng.uniform(10.0, 13.5, 3)  # at the ring
+    ranges[0] = rng.uniform(10.7, 11.0)  # in the ring (w_m is about 1.5 m there)
     bearings = rng.uniform(-np.pi, np.pi, num_slots)
     mean = np.stack([ranges * np.cos(bearings), ranges * np.sin(bearings)], -1)
     cov = np.tile([0.02, 0.003, 0.03], (num_slots, 1))
@@ -78,6 +82,10 @@ def random_case(seed, num_obs=6, num_slots=8, saturated=False):
     z = np.stack([ranges[seen] + rng.normal(0, 0.2, num_obs),
                   bearings[seen] + rng.normal(0, 0.02, num_obs)], -1)
     z[-1] = [rng.uniform(0.5, 12.5), rng.uniform(-np.pi, np.pi)]  # a tree not in the map
+    # Landmark 0 seen 0.3-0.5 m short: the observation lies inside its own ring edge (about
+    # 10.6 m) but gates with the ring landmark, so it is set aside by the gate alone.
+    active[0] = True
+    z[0] = [ranges[0] - rng.uniform(0.3, 0.5), bearings[0]]
     valid = np.ones(num_obs, bool) if saturated else rng.random(num_obs) < 0.8
     return params, np.zeros(3), mean, cov, active, z, valid
 
@@ -101,8 +109,21 @@ def reference_of(params, pose, mean, cov, active, z, valid, boundary):
     s_rr = (h[:, 0] ** 2 * cov[:, 0] + 2 * h[:, 0] * h[:, 1] * cov[:, 1]
             + h[:, 1] ** 2 * cov[:, 2] + sigma**2)
     np.testing.assert_allclose(np.asarray(predicted.s_rr), s_rr, rtol=1e-10)
-    return reference_visibility(z, valid, active, rng_, np.arctan2(dy, dx), s_rr,
-                                np.asarray(d2), params, boundary)
+    # The pair distances in float64 too: nu^T S^-1 nu with S = H Sigma H^T + diag(sigma_r^2,
+    # sigma_b^2), H the range-bearing Jacobian, nu = (z_r - r, wrap(z_b - b)).
+    bearing = np.arctan2(dy, dx)
+    rows = np.stack([h, np.stack([-dy, dx], -1) / rng_[:, None] ** 2], 1)  # (M, 2, 2)
+    sigma_xy = np.array([[[c[0], c[1]], [c[1], c[2]]] for c in cov])
+    s_full = rows @ sigma_xy @ np.swapaxes(rows, 1, 2)
+    s_full[:, 0, 0] += sigma**2
+    s_full[:, 1, 1] += np.maximum(0.0025 * rng_ + 0.001, 1e-5) ** 2
+    nu = np.stack([z[:, None, 0] - rng_[None, :],
+                   np.angle(np.exp(1j * (z[:, None, 1] - bearing[None, :])))], -1)  # (K, M, 2)
+    d2_ref = np.einsum("kmi,mij,kmj->km", nu, np.linalg.inv(s_full), nu)
+    pairs = valid[:, None] & active[None, :]
+    np.testing.assert_allclose(np.asarray(d2)[pairs], d2_ref[pairs], rtol=1e-8)
+    return reference_visibility(z, valid, active, rng_, bearing, s_rr,
+                                np.where(pairs, d2_ref, np.inf), params, boundary)
 
 
 @pytest.mark.parametrize("boundary", BOUNDARIES)
@@ -121,12 +142,12 @@ def test_the_cases_reach_every_rule():
     """The random cases above hold ring observations, ring landmarks and set-aside
     observations that gate with a ring landmark, so the reference comparison tests the
     rules that differ between the boundaries, not only the common inside."""
-    counts = np.zeros(3, int)
+    counts = np.zeros(4, int)
     for seed in range(6):
-        ref = reference_of(*random_case(seed, saturated=seed % 3 == 0), "loose_match")
-        counts += [ref["set_aside_obs"].sum(),
-                   (ref["matchable"] & ~reference_of(*random_case(seed, saturated=seed % 3 == 0),
-                                                     "loose")["matchable"]).sum(),
+        case = random_case(seed, saturated=seed % 3 == 0)
+        ref = reference_of(*case, "loose_match")
+        counts += [ref["set_aside_obs"].sum(), ref["set_aside_by_gate"].sum(),
+                   (ref["matchable"] & ~reference_of(*case, "loose")["matchable"]).sum(),
                    ref["explained"].sum()]
     assert np.all(counts > 0), counts
 
@@ -256,3 +277,20 @@ def test_an_unseen_ring_landmark_keeps_its_evidence(steps):
     new, _ = step(steps, "loose_match", state, [[10.0, 0.0], [0.0, 0.0]], [True, False])
     np.testing.assert_array_equal(np.asarray(new.particles.active[0, :2]), [True, True])
     np.testing.assert_allclose(float(new.particles.existence[0, 1]), 0.5)
+
+
+def test_a_set_aside_observation_updates_a_landmark_inside_the_ring(steps):
+    """An observation at 18.0 m lies in its own ring (20 - 5 (0.02 * 18 + 0.05) = 17.95 m);
+    its tree's landmark at 17.7 m lies inside the ring (inner edge 20 - 5 sqrt(0.01 +
+    (0.02 * 17.7 + 0.05)^2) = 17.92 m). ``loose`` sets the observation aside and spares the
+    landmark the miss (it explains it); ``loose_match`` also matches the two."""
+    for boundary, want in (("loose", -1), ("loose_match", 1)):
+        filt, _ = steps[boundary]
+        state = crafted(filt, [[10.0, 0.0], [17.7, 0.0]], [1.0, 1.0])
+        new, info = step(steps, boundary, state, [[10.0, 0.0], [18.0, 0.0]], [True, True])
+        np.testing.assert_array_equal(np.asarray(info.match[0]), [0, want])
+        assert int(info.num_set_aside[0]) == 1
+        np.testing.assert_array_equal(np.asarray(new.particles.active[0]),
+                                      [True, True, False, False])
+        existence = float(new.particles.existence[0, 1])
+        assert existence > 1.0 if want >= 0 else existence == 1.0

@@ -77,7 +77,8 @@ class Params(NamedTuple):
         prediction"); ``calibrate_params`` sets it from the log (the fitted motion model's
         typical heading std): as an angle it widens the gate with range.
       new_landmark_log_offset: an observation that no landmark explains (it starts a new
-        landmark, or it is set aside in the airlock) is credited the log-likelihood of a match
+        landmark, or it is set aside in the airlock and, with ``boundary="loose_match"``,
+        not matched either) is credited the log-likelihood of a match
         exactly at the gate under its own measurement noise, plus this offset. Every valid
         observation thus adds exactly one term to every particle's weight.
       detection_probability / false_alarm_probability: for existence log-odds updates.
@@ -85,7 +86,7 @@ class Params(NamedTuple):
       existence_max: log-odds are clipped to [-existence_max, existence_max] so a long-seen
         landmark can still be deleted after a few misses.
       airlock_sigmas: the airlock width in standard deviations of the range (``boundary=
-        "loose"``): w = airlock_sigmas * sigma_range. ``default_params`` derives it from the
+        "loose"`` or ``"loose_match"``): w = airlock_sigmas * sigma_range. ``default_params`` derives it from the
         gate of the same call, sqrt(association_gate) (Geiser et al. 2023, section 3.1: "based
         on the correspondence threshold"): 5 for the default gate 25, 4 for a gate of 16; a
         value given explicitly wins.
