@@ -51,7 +51,8 @@ def reference_visibility(z, valid, active, pred_range, pred_bearing, s_rr, d2, p
     sigma_obs = np.maximum(slope * z[:, 0] + const, p["range_std_floor"])
     obs_ring = z[:, 0] > p["max_range"] - p["airlock_sigmas"] * sigma_obs
     width = p["airlock_sigmas"] * np.sqrt(s_rr)
-    lm_ring = active & (pred_range > p["max_range"] - width) & (pred_range <= p["max_range"] + width)
+    lm_ring = (active & (pred_range > p["max_range"] - width)
+               & (pred_range <= p["max_range"] + width))
     gated = d2 <= p["association_gate"]
     set_aside = obs & (obs_ring | np.any(gated & lm_ring[None, :], axis=1))
     inside = active & in_min & (pred_range <= p["max_range"] - width)

@@ -86,10 +86,10 @@ class Params(NamedTuple):
       existence_max: log-odds are clipped to [-existence_max, existence_max] so a long-seen
         landmark can still be deleted after a few misses.
       airlock_sigmas: the airlock width in standard deviations of the range (``boundary=
-        "loose"`` or ``"loose_match"``): w = airlock_sigmas * sigma_range. ``default_params`` derives it from the
-        gate of the same call, sqrt(association_gate) (Geiser et al. 2023, section 3.1: "based
-        on the correspondence threshold"): 5 for the default gate 25, 4 for a gate of 16; a
-        value given explicitly wins.
+        "loose"`` or ``"loose_match"``): w = airlock_sigmas * sigma_range. ``default_params``
+        derives it from the gate of the same call, sqrt(association_gate) (Geiser et al.
+        2023, section 3.1: "based on the correspondence threshold"): 5 for the default gate
+        25, 4 for a gate of 16; a value given explicitly wins.
     Resampling:
       ess_threshold: resample when ESS < ess_threshold * P.
     Mixture proposal (Geiser et al. 2023, section 5.2):
