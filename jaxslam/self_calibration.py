@@ -413,7 +413,7 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
     def smooth(path, landmark_of_obs):
         return smoothing.smooth_path(log.start, path, odometry, log.z, landmark_of_obs, params,
                                      iterations=smoother_iterations, tol=1e-4,
-                                     calibrate_rounds=2)
+                                     calibrate_rounds=smoothing.VARIANCE_ROUNDS)
 
     try:
         smoothed = smooth(filter_path, ids)

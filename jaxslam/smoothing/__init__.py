@@ -48,13 +48,14 @@ from jaxslam.smoothing.problem import NoiseScales
 from jaxslam.smoothing.residuals import (MOVE_STD_FLOOR, initial_landmarks, move_residual,
                                          move_residuals, move_whitening, observation_residual,
                                          observation_residuals, observation_std)
-from jaxslam.smoothing.smooth import Smoothed, smooth_lineage, smooth_path
+from jaxslam.smoothing.smooth import VARIANCE_ROUNDS, Smoothed, smooth_lineage, smooth_path
 from jaxslam.smoothing.visits import Visits, check_visit_options, split_visits
 
 __all__ = [
     "MOVE_STD_FLOOR",
     "NoiseScales",
     "Smoothed",
+    "VARIANCE_ROUNDS",
     "Visits",
     "check_visit_options",
     "initial_landmarks",

@@ -19,7 +19,7 @@ import pytest
 from experiments import victoria_park_pipeline as vps
 from jaxslam.datasets import victoria_park as vpm
 from jaxslam.detect import detect_trunks
-from jaxslam.smoothing import smooth_path
+from jaxslam.smoothing import VARIANCE_ROUNDS, smooth_path
 from jaxslam.types import FilterConfig, Params, default_params
 from jaxslam.validation import check_params
 
@@ -482,6 +482,9 @@ def test_library_default_entries_are_the_library_defaults():
     param_defaults = default_params()
     smoother_defaults = {name: parameter.default for name, parameter in
                          inspect.signature(smooth_path).parameters.items()}
+    # A finished run is smoothed by pipeline.offline_path, whose rounds of variance
+    # components default to smoothing.VARIANCE_ROUNDS (smooth_path's own default is 0).
+    smoother_defaults["calibrate_rounds"] = VARIANCE_ROUNDS
     for name, section, field, entry in _entries():
         if entry["source"] != "library default":
             continue
