@@ -733,7 +733,8 @@ def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = Non
         set's).
       close_loops: also smooth the history with the loops the filter missed closed
         (``pipeline.offline_path``: ``loop_closure.close_loops``, plain squares, then the
-        library's default smoother on the closed association; needs ``smooth``).
+        smoother on the closed association with the ``smoother``'s rounds of variance
+        components, as the smoothed path; needs ``smooth``).
     """
     _check_smoothing(smooth, smooth_visit_gap, close_loops)
     config, params, controls, observations, log, steps = _run_inputs(
@@ -752,8 +753,11 @@ def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = Non
     closed, closed_gps, closures, close_s = None, None, None, 0.0
     if close_loops:
         start = time.perf_counter()
+        rounds = (smoother_options(LEGACY) if smoother is None else smoother).get(
+            "calibrate_rounds", 0)  # the set's own count, as the smoothed path's
         closed, closures = offline_path(outputs[6], controls, observations, np.zeros(3),
-                                        params, config.motion_model, close_loops=True)
+                                        params, config.motion_model, close_loops=True,
+                                        calibrate_rounds=rounds)
         close_s = time.perf_counter() - start
         closed_gps = _gps_score(log, closed, steps)
     return VictoriaParkRun(

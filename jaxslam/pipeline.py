@@ -9,7 +9,8 @@
        known (for the smoother and for the warnings);
     4. optionally ``smoothing.smooth_lineage`` of that particle's history, or with
        ``close_loops`` ``loop_closure.close_loops`` from it (loops the filter missed closed
-       by registration, each closure tested by the smoother's cost rise);
+       by registration, each closure tested by the smoother's cost rise), its noise groups
+       weighed by their residuals' variance components (``offline_path``);
     5. metrics against the log's ground truth when it has any (truth only scores);
     6. ``run_warnings``: plain-word warnings about a run that went wrong.
 
@@ -199,7 +200,8 @@ def log_inputs(log, config: FilterConfig):
 
 def filter_log(log, config: FilterConfig, params: Params | None = None, key=None, *,
                calibrate: bool = True, smooth: bool = False, visit_gap: int | None = None,
-               close_loops: bool = False, map_match_threshold: float = 1.0,
+               close_loops: bool = False, smooth_rounds: int | None = None,
+               map_match_threshold: float = 1.0,
                calibration_options: dict | None = None,
                progress: Callable[[str], None] | None = None) -> LogRun:
     """Calibrate (by default), filter and evaluate one ``RobotLog`` (module docstring).
@@ -216,11 +218,14 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
         (``loop_closure.close_loops``, plain squares; the final solve of the closed
         association uses the smoother's default robust loss; not with ``visit_gap``);
         metrics gain ``loop_closures`` and ``landmarks_joined`` (landmarks removed).
+      smooth_rounds: with ``smooth``, the smoother's rounds of variance components
+        (``offline_path``'s ``calibrate_rounds``; None: ``smoothing.VARIANCE_ROUNDS``; 0
+        smooths with the Params' noise as it is).
       map_match_threshold: [m] landmark-to-tree distance of a match in the map metrics.
       calibration_options: keyword arguments for ``calibrate_params``.
       progress: optional callable(str) told of each stage.
     """
-    check_offline_options(smooth, visit_gap, close_loops)
+    check_offline_options(smooth, visit_gap, close_loops, smooth_rounds)
     key = jax.random.PRNGKey(0) if key is None else key
     config, controls, obs, start = log_inputs(log, config)
     from jaxslam.validation import observation_units_warnings  # units guard (issue 18)
@@ -241,7 +246,8 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
     history = lineage.trace_lineage(trace.lineage, est.best_particle)  # traced once
     if smooth:
         smoothed, closed = offline_path(history, controls, obs, start, params,
-                                        log.motion_model, visit_gap, close_loops)
+                                        log.motion_model, visit_gap, close_loops,
+                                        smooth_rounds)
     valid = np.asarray(obs.valid)
     share, births = history_counts(history, valid)
     values = {"steps": log.num_steps, "num_landmarks": int(np.sum(np.asarray(est.active))),
@@ -261,9 +267,16 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
     return LogRun(params, calibration, est, trace, mean_pose, smoothed, values, tuple(warnings))
 
 
-def check_offline_options(smooth: bool, visit_gap: int | None, close_loops: bool) -> None:
+def check_offline_options(smooth: bool, visit_gap: int | None, close_loops: bool,
+                          smooth_rounds: int | None = None) -> None:
     """Raise ValueError for ``close_loops`` without ``smooth`` or together with ``visit_gap``
-    (visits are the smoother's own soft loop closures), before any filter runs."""
+    (visits are the smoother's own soft loop closures), or for ``smooth_rounds`` that is not
+    None or a non-negative int, before any filter runs."""
+    if smooth_rounds is not None and (isinstance(smooth_rounds, bool) or not isinstance(
+            smooth_rounds, (int, np.integer)) or smooth_rounds < 0):
+        raise ValueError(f"smooth_rounds must be None (the default, "
+                         f"smoothing.VARIANCE_ROUNDS) or an int >= 0 (rounds of variance "
+                         f"components in the smoother); got {smooth_rounds!r}")
     if close_loops and (not smooth or visit_gap is not None):
         raise ValueError("close_loops needs smooth=True and no visit_gap (visits are the "
                          "smoother's own soft loop closures; choose one)")
@@ -284,11 +297,14 @@ def offline_path(history, controls, obs, start, params: Params, motion_model: st
     filter's sake (``noise_scale``; observation x8 on Victoria Park), and a hand-set noise is
     usually widened for the same reason. Weighed with it, the least squares trusts the
     odometry too much or too little. On Victoria Park keys 0-3 the rounds took the smoothed
-    RMSE from 2.8-3.2 m to 1.6-2.7 m (docs/results.md, victoria_park). The loop-closure test
+    RMSE from 2.8-3.2 m to 1.6-2.7 m (docs/results.md, victoria_park; in-sample for the
+    count of rounds, which is the M-step's, kept over the fixed point after seeing two keys
+    at both). ``calibrate_rounds`` must be None or an int >= 0. The loop-closure test
     (``close_loops``) keeps ``params`` as they are: its limit was measured so."""
     from jaxslam import loop_closure, smoothing
     from jaxslam.motion import control_to_odometry
 
+    check_offline_options(True, visit_gap, close_loops, calibrate_rounds)
     history = jax.tree.map(np.asarray, history)
     odometry = np.asarray(control_to_odometry(controls, params, motion_model), np.float64)
     start = np.asarray(start, np.float64)

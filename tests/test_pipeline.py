@@ -122,6 +122,29 @@ def test_filter_log_close_loops_needs_smoothing_without_visits():
             pipeline.filter_log(_log(), config, None, calibrate=False, **options)
 
 
+def test_filter_log_smooth_rounds_reach_the_smoother_and_bad_counts_fail_early():
+    from jaxslam import lineage
+
+    config = FilterConfig(num_particles=8, max_landmarks=16)
+    for bad in (-1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="smooth_rounds must be None"):
+            pipeline.filter_log(_log(), config, None, calibrate=False, smooth=True,
+                                smooth_rounds=bad)
+    runs = {rounds: pipeline.filter_log(_log(40), config, None, jax.random.PRNGKey(0),
+                                        calibrate=False, smooth=True, smooth_rounds=rounds)
+            for rounds in (None, 0)}
+    # The filter runs are the same; only the smoother's weighting differs.
+    np.testing.assert_array_equal(runs[None].mean_pose, runs[0].mean_pose)
+    run = runs[0]
+    config_, controls, obs, start = pipeline.log_inputs(_log(40), config)
+    history = lineage.trace_lineage(run.trace.lineage, run.estimate.best_particle)
+    for rounds, expected_rounds in ((None, None), (0, 0)):
+        path, _ = pipeline.offline_path(history, controls, obs, start, run.params,
+                                        config_.motion_model, calibrate_rounds=expected_rounds)
+        np.testing.assert_array_equal(runs[rounds].smoothed_pose, path)
+    assert not np.array_equal(runs[None].smoothed_pose, runs[0].smoothed_pose)
+
+
 def test_filter_log_calibrates_and_smooths():
     config = FilterConfig(num_particles=8, max_landmarks=16)
     run = pipeline.filter_log(_log(40), config, None, jax.random.PRNGKey(0), smooth=True,

@@ -69,9 +69,10 @@ def _check_inputs(start_pose, path, odometry, z, landmark_of_obs, steps: int):
 
 # Rounds of variance components (``calibrate_rounds``) wherever the library smooths a filter
 # run: the calibration's M-step (``self_calibration``) and the offline path of a finished run
-# (``pipeline.offline_path``). Two rounds, not the fixed point: on Victoria Park the rounds'
-# translation factor keeps growing for 8-12 rounds (x3 after two, x11-14 at the fixed point),
-# absorbing errors the Gaussian move model does not describe (docs/results.md, victoria_park).
+# (``pipeline.offline_path``). Two rounds, not the fixed point: on Victoria Park the
+# translation factor keeps growing for 8-12 rounds (x3-7 after two, x11-14 at the fixed
+# point), absorbing errors the Gaussian move model does not describe; that choice was made
+# after seeing the GPS errors of both on two keys (docs/results.md, victoria_park).
 VARIANCE_ROUNDS = 2
 
 
