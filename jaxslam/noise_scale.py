@@ -379,6 +379,15 @@ def walk_stage(scales, score, stop_at_first_drop: bool = True, workers: int = 1,
     return objective, dropped, fill_step
 
 
+def any_fair(found: ScaleSearch) -> bool:
+    """Whether any candidate of either stage was a fair one (``best_scale``): its run
+    dropped no birth and scored a finite log likelihood. False means no likelihood ranked
+    the search's choice (the observation stage fell back on the map that filled last)."""
+    dropped = np.concatenate([found.motion_dropped, found.observation_dropped])
+    objective = np.concatenate([found.motion_objective, found.observation_objective])
+    return bool(np.any((dropped == 0) & np.isfinite(objective)))
+
+
 def describe_search(found: ScaleSearch) -> str:
     """One line: each stage's candidates and scores, which were not run, and the births the
     runs dropped when any did (how the choice was made: ``best_scale``)."""

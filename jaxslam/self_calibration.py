@@ -125,7 +125,7 @@ from jaxslam.filter import run_filter
 from jaxslam.landmark_merge import merge_split_landmarks, relabel
 from jaxslam.motion import control_to_odometry
 from jaxslam.noise_scale import (DEFAULT_SCALES, MOTION_FIELDS, OBSERVATION_FIELDS, ScaleSearch,
-                                 check_scales, check_workers, describe_search,
+                                 any_fair, check_scales, check_workers, describe_search,
                                  latest_fill, score_trace, search_noise_scales)
 from jaxslam.noise_fit import (MIN_MOVES, MIN_OBSERVATIONS, MIN_SIGHTINGS, STD_FLOOR,
                                group_relative_errors, measured_radii, motion_noise_update,
@@ -607,6 +607,23 @@ def _chosen_by_fill(objective, dropped) -> bool:
     return not np.any(np.isfinite(scores) & (later == 0)) and bool(np.any(later > 0))
 
 
+def _unranked_warning(objective, dropped, found: ScaleSearch | None, slots: int) -> list[str]:
+    """The plain-word warning for settings no likelihood ranked: every EM run ``_best_run``
+    may return overflowed the map (``_chosen_by_fill``; objective (R,), dropped (R,)) and
+    the scale search, when it ran (``found``), met no fair candidate either (``any_fair``).
+    The returned settings are then the fallback of the map that filled last, which on
+    Victoria Park key 4 ran 34.8 m off against GPS (docs/results.md). Else []."""
+    if not _chosen_by_fill(objective, dropped) or (found is not None and any_fair(found)):
+        return []
+    runs = "every EM run" + (" and every candidate of the noise-scale search"
+                             if found is not None else "")
+    return [f"no calibration run kept every landmark birth: {runs} filled the map's {slots} "
+            "slots, so no likelihood ranked the settings and those returned are the run "
+            "whose map filled last; expect trees split into several landmarks and a poor "
+            "run (too few map slots for this log, or observations of one tree that fail "
+            "to match with every noise tried)"]
+
+
 def _stalled_line(iteration: int, objective, dropped, patience: int, fill_step) -> str:
     best = _best_run(objective, dropped, fill_step)
     if _chosen_by_fill(objective, dropped):  # ``_best_run`` ranks by the fill step
@@ -863,6 +880,10 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     verdict += chosen
     if warnings:
         verdict += "; partly calibrated (see warnings)"
+    unranked = _unranked_warning(objective, dropped, found, config.max_landmarks)
+    if unranked:
+        verdict += "; no likelihood ranked the settings (see warnings)"
+    warnings += unranked
     relative_std, samples, bursts_fitted = _stated_errors(m_steps, source, steps)
     warnings += loose_interval_warnings(relative_std)
     return params, CalibrationInfo(done, np.asarray(objective), np.asarray(costs),

@@ -896,12 +896,46 @@ def test_em_returns_the_latest_filling_run_and_hands_it_to_the_search(monkeypatc
     assert "none of the last 2 runs beat iteration 3's map, which lasted until step 90" \
         in lines[-1]
     assert "map full from step 50: 9 births dropped" in lines[0]
+    # No likelihood ranked these settings: the warning and the verdict say so.
+    assert "no likelihood ranked the settings (see warnings)" in info.verdict
+    assert any(f"every EM run filled the map's {CONFIG.max_landmarks} slots" in warning
+               for warning in info.warnings), info.warnings
     scripted = iter(zip(scores, fills))
     monkeypatch.setattr(sc, "search_noise_scales", search)
     with pytest.raises(Handed) as handed:
         sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0],
                             iterations=6, tol=1e-9)
     assert handed.value.args[0] == RunScore(5.0, 9, 90)
+
+
+def _search_found(motion_dropped, observation_dropped, objective=1.0):
+    from jaxslam.noise_scale import ScaleSearch
+
+    scales = np.array([1.0, 2.0])
+    values = np.full(2, objective)
+    return ScaleSearch(1.0, 2.0, scales, values, scales, values,
+                       np.asarray(motion_dropped), np.asarray(observation_dropped),
+                       np.array([5, 7]), np.array([5, 9]))
+
+
+@pytest.mark.parametrize("objective, dropped, found, warned", [
+    ([1.0, 2.0, 3.0], [0, 0, 0], None, False),              # EM's runs kept every birth
+    ([1.0, 2.0, 3.0], [4, 0, 4], None, False),              # one later run did
+    ([1.0, 2.0, 3.0], [0, 4, 4], None, True),               # none after the first did
+    ([1.0, 2.0, 3.0], [0, 4, 4], "fair", False),            # the search ranked its choice
+    ([1.0, 2.0, 3.0], [0, 4, 4], "all overflowed", True),   # neither did the search
+    ([1.0, 2.0, 3.0], [0, 4, 4], "not finite", True),       # dropped none, no finite score
+])
+def test_unranked_warning_only_when_no_run_was_fair(objective, dropped, found, warned):
+    found = {None: None,
+             "fair": _search_found([3, 0], [3, 3]),
+             "all overflowed": _search_found([3, 3], [3, 3]),
+             "not finite": _search_found([0, 0], [0, 0], objective=np.nan)}[found]
+    out = sc._unranked_warning(objective, dropped, found, 16)
+    assert bool(out) is warned
+    if warned:
+        assert "filled the map's 16 slots" in out[0]
+        assert ("every candidate of the noise-scale search" in out[0]) is (found is not None)
 
 
 def test_progress_line_names_an_overflowed_run():
