@@ -268,13 +268,15 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
 
 
 def check_offline_options(smooth: bool, visit_gap: int | None, close_loops: bool,
-                          smooth_rounds: int | None = None) -> None:
+                          smooth_rounds: int | None = None,
+                          rounds_name: str = "smooth_rounds") -> None:
     """Raise ValueError for ``close_loops`` without ``smooth`` or together with ``visit_gap``
     (visits are the smoother's own soft loop closures), or for ``smooth_rounds`` that is not
-    None or a non-negative int, before any filter runs."""
+    None or a non-negative int (named ``rounds_name`` in the message), before any filter
+    runs."""
     if smooth_rounds is not None and (isinstance(smooth_rounds, bool) or not isinstance(
             smooth_rounds, (int, np.integer)) or smooth_rounds < 0):
-        raise ValueError(f"smooth_rounds must be None (the default, "
+        raise ValueError(f"{rounds_name} must be None (the default, "
                          f"smoothing.VARIANCE_ROUNDS) or an int >= 0 (rounds of variance "
                          f"components in the smoother); got {smooth_rounds!r}")
     if close_loops and (not smooth or visit_gap is not None):
@@ -304,7 +306,7 @@ def offline_path(history, controls, obs, start, params: Params, motion_model: st
     from jaxslam import loop_closure, smoothing
     from jaxslam.motion import control_to_odometry
 
-    check_offline_options(True, visit_gap, close_loops, calibrate_rounds)
+    check_offline_options(True, visit_gap, close_loops, calibrate_rounds, "calibrate_rounds")
     history = jax.tree.map(np.asarray, history)
     odometry = np.asarray(control_to_odometry(controls, params, motion_model), np.float64)
     start = np.asarray(start, np.float64)
@@ -324,7 +326,8 @@ def offline_path(history, controls, obs, start, params: Params, motion_model: st
                                      iterations=iterations, huber=PLAIN_SQUARES, tol=1e-8)
 
     closed = loop_closure.close_loops(solve, history.pose, ids)
-    # The reported path: the closed association solved with the smoother's robust default.
+    # The reported path: the closed association solved with the smoother's robust default,
+    # its noise groups weighed by the rounds.
     final = smoothing.smooth_path(start, closed.smoothed.path, odometry, z,
                                   closed.smoothed.landmark_of_obs, params,
                                   calibrate_rounds=rounds)

@@ -138,10 +138,13 @@ def test_filter_log_smooth_rounds_reach_the_smoother_and_bad_counts_fail_early()
     run = runs[0]
     config_, controls, obs, start = pipeline.log_inputs(_log(40), config)
     history = lineage.trace_lineage(run.trace.lineage, run.estimate.best_particle)
-    for rounds, expected_rounds in ((None, None), (0, 0)):
+    for rounds in (None, 0):
         path, _ = pipeline.offline_path(history, controls, obs, start, run.params,
-                                        config_.motion_model, calibrate_rounds=expected_rounds)
+                                        config_.motion_model, calibrate_rounds=rounds)
         np.testing.assert_array_equal(runs[rounds].smoothed_pose, path)
+    with pytest.raises(ValueError, match="calibrate_rounds must be None"):
+        pipeline.offline_path(history, controls, obs, start, run.params,
+                              config_.motion_model, calibrate_rounds=-1)
     assert not np.array_equal(runs[None].smoothed_pose, runs[0].smoothed_pose)
 
 
