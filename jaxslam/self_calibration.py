@@ -48,7 +48,8 @@ estimation use, with the particle filter as the E-step's data associator:
          of ``Trace.log_evidence``); when the iterations do not converge, return the
          settings whose run scored best (an iteration that broke the association scores
          low); stop once the last ``patience`` runs did not beat the best run before them
-         (the first run never counts as best; ``_stalled``): a Monte Carlo EM's likelihood
+         (the first run never counts as best, and no stop while every run overflowed the map,
+         as no likelihood ranks such runs; ``_stalled``): a Monte Carlo EM's likelihood
          need not rise every iteration, but on the logs measured (docs/results.md,
          calibration_time) it did not come back once it had fallen twice below its best,
          and each further iteration costs a filter run;
@@ -126,7 +127,7 @@ from jaxslam.landmark_merge import merge_split_landmarks, relabel
 from jaxslam.motion import control_to_odometry
 from jaxslam.noise_scale import (DEFAULT_SCALES, MOTION_FIELDS, OBSERVATION_FIELDS, ScaleSearch,
                                  any_fair, check_scales, check_workers, describe_search,
-                                 latest_fill, score_trace, search_noise_scales)
+                                 score_trace, search_noise_scales)
 from jaxslam.noise_fit import (MIN_MOVES, MIN_OBSERVATIONS, MIN_SIGHTINGS, STD_FLOOR,
                                group_relative_errors, measured_radii, motion_noise_update,
                                observation_noise_update, radius_noise_from_history,
@@ -179,14 +180,14 @@ class CalibrationInfo(NamedTuple):
         its map was full (summed over particles and steps). When EM does not converge, the
         settings returned are those of the best run after the first (``_best_run``), chosen
         among the runs that dropped none when any did (and scored a finite value), else the
-        run whose map filled last.
+        run that dropped the fewest.
       bursts_fitted: whether the motion fit behind the returned settings found bursts
         (``motion_outlier_probability`` and ``motion_outlier_scale`` fitted); False when it
         kept the defensive ones (``defensive_bursts``), None when no motion fit lies behind
         them.
       fill_steps: (iterations,) int64 each filter run's first step that dropped a birth (the
-        log's length T when none did): ``_best_run`` ranks by it when no later run kept every
-        birth with a finite score.
+        log's length T when none did): ``_best_run`` breaks ties of the fewest dropped births
+        with it when no later run kept every birth with a finite score.
     """
 
     iterations: int
@@ -532,9 +533,16 @@ def _best_run(objective, dropped, fill_step=None) -> int:
     no M-step has seen: it is never the one returned. Runs that dropped births (the map was
     full) compete only when every other run did too (or scored no finite value): their score
     counts unmapped trees again at each sighting (``noise_scale``), so among them the one
-    whose map filled last is returned (``noise_scale.latest_fill``, the search's rule), or,
-    without ``fill_step``, the most likely. objective (R,), dropped (R,) births each run
-    dropped, fill_step (R,) each run's first step that dropped one (T when none).
+    that dropped the fewest births is returned (ties: the one whose map filled last, then the
+    earlier), or, without ``fill_step``, the most likely. The births dropped, summed over
+    particles and steps, count every landmark start the map had no slot for over the whole
+    run: the more a run splits trees, the more it drops. The first step with a dropped birth
+    (the scale search's measure, whose runs stop there) is one noisy point of that: on
+    Victoria Park key 4 (2026-12-06) runs 2 and 5 filled at scans 4,182 and 4,094 while
+    dropping 928,813 and 599,186 births, and run 2's settings, returned by the fill step,
+    ran 34.8 m off GPS (in-sample: this rule was written after seeing it; docs/results.md).
+    objective (R,), dropped (R,) births each run dropped, fill_step (R,) each run's first
+    step that dropped one (T when none).
     """
     scores = np.asarray(objective, np.float64)
     scores[0] = -np.inf if len(scores) > 1 else scores[0]
@@ -545,7 +553,7 @@ def _best_run(objective, dropped, fill_step=None) -> int:
         # A run whose score is not finite (a broken run) is taken only if every one is.
         finite = np.isfinite(scores[first:])
         eligible = np.where(finite, later, 0) if np.any(finite & (later > 0)) else later
-        return first + latest_fill(eligible, np.asarray(fill_step)[first:])
+        return first + fewest_dropped(eligible, np.asarray(fill_step)[first:])
     if np.any(np.isfinite(scores) & ~full):
         scores = np.where(full, -np.inf, scores)
     if not np.any(np.isfinite(scores)):
@@ -553,13 +561,27 @@ def _best_run(objective, dropped, fill_step=None) -> int:
     return int(np.argmax(np.where(np.isfinite(scores), scores, -np.inf)))
 
 
+def fewest_dropped(dropped, fill_step) -> int:
+    """Index of the overflowed run (``dropped`` (R,) > 0) that dropped the fewest births;
+    ties go to the latest ``fill_step`` (R,), then to the first; -1 when none overflowed."""
+    dropped, fill_step = np.asarray(dropped), np.asarray(fill_step)
+    overflowed = np.flatnonzero(dropped > 0)
+    if overflowed.size == 0:
+        return -1
+    # lexsort: the last key is the primary one; the stable sort keeps the given order.
+    return int(overflowed[np.lexsort((-fill_step[overflowed], dropped[overflowed]))[0]])
+
+
 def _stalled(objective, dropped, patience: int | None, fill_step=None) -> bool:
     """Whether none of the last ``patience`` filter runs is the best so far by ``_best_run``'s
     rule (the first run never counts as best; a run whose map overflowed counts only when
     every run's did, so such a run does not beat a lower fair one; a tie keeps the earlier
-    run). objective (R,), dropped (R,), fill_step (R,) or None. None patience: never. Can
-    first hold after patience + 2 runs."""
-    if patience is None:
+    run). objective (R,), dropped (R,), fill_step (R,) or None. None patience: never. Nor
+    while no run after the first kept every birth with a finite score (``_chosen_by_fill``):
+    no likelihood ranks such runs, and EM's later iterations may still reach one that keeps
+    its map (on Victoria Park every key's fifth run dropped the fewest births of runs 2-5).
+    Can first hold after patience + 2 runs."""
+    if patience is None or _chosen_by_fill(objective, dropped):
         return False
     return len(objective) - 1 - _best_run(objective, dropped, fill_step) >= patience
 
@@ -589,7 +611,7 @@ def _progress_line(iteration: int, objective: float, typical, change: float,
     at = "" if fill_step is None else f" from step {fill_step}"
     full = (f", map full{at}: {dropped} births dropped (if EM does not converge, the run "
             f"whose settings are returned is chosen among the later runs that dropped none, "
-            f"when there are any, else it is the one whose map filled last)"
+            f"when there are any, else it is the one that dropped the fewest births)"
             if dropped else "")
     return (f"calibration iteration {iteration}: log marginal likelihood {objective:.1f}{full}, "
             f"typical stds heading {typical[0]:.4g} rad, translation {typical[1]:.4g} m, "
@@ -611,28 +633,25 @@ def _unranked_warning(objective, dropped, found: ScaleSearch | None, slots: int)
     """The plain-word warning for settings no likelihood ranked: every EM run ``_best_run``
     may return overflowed the map (``_chosen_by_fill``; objective (R,), dropped (R,)) and
     the scale search, when it ran (``found``), met no fair candidate either (``any_fair``).
-    The returned settings are then the fallback of the map that filled last, which on
-    Victoria Park key 4 ran 34.8 m off against GPS (docs/results.md). Else []."""
+    The returned settings are then a fallback (EM's run that dropped the fewest births,
+    the search's map that filled last), which on Victoria Park key 4 ran 34.8 m off against
+    GPS (docs/results.md). Else []."""
     if not _chosen_by_fill(objective, dropped) or (found is not None and any_fair(found)):
         return []
     runs = "every EM run" + (" and every candidate of the noise-scale search"
                              if found is not None else "")
     return [f"no calibration run kept every landmark birth: {runs} filled the map's {slots} "
-            "slots, so no likelihood ranked the settings and those returned are the run "
-            "whose map filled last; expect trees split into several landmarks and a poor "
+            "slots, so no likelihood ranked the settings and those returned are a fallback "
+            "(the run that overflowed least); expect trees split into several landmarks and a poor "
             "run (too few map slots for this log, or observations of one tree that fail "
             "to match with every noise tried)"]
 
 
 def _stalled_line(iteration: int, objective, dropped, patience: int, fill_step) -> str:
-    best = _best_run(objective, dropped, fill_step)
-    if _chosen_by_fill(objective, dropped):  # ``_best_run`` ranks by the fill step
-        beaten = f"map, which lasted until step {fill_step[best]}"
-    else:
-        beaten = f"{objective[best]:.1f}"
+    best = _best_run(objective, dropped, fill_step)  # a fair run: ``_stalled`` waits for one
     return (f"calibration iteration {iteration}: log marginal likelihood {objective[-1]:.1f}; "
             f"none of the last {patience} runs beat iteration {best + 1}'s "
-            f"{beaten}: EM stops (not converged)")
+            f"{objective[best]:.1f}: EM stops (not converged)")
 
 
 def _scale_search(config, key, params, controls, observations, start, scales, last: _MStep,
@@ -703,7 +722,9 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         marginal likelihood below the best run before them (``_stalled``); the best run's
         settings are then returned, as when ``iterations`` runs out. None: run until
         ``tol`` or ``iterations``. Must be >= 1; can only stop EM when
-        ``iterations >= patience + 2`` (the first run never counts as best).
+        ``iterations >= patience + 2`` (the first run never counts as best), and never while
+        every run after the first overflowed the map (then the run that dropped the fewest
+        births is returned: ``_best_run``).
       calibrate_sensor: also estimate max_range, miss_range, detection and false-alarm
         probabilities and the gate (else only the noise).
       calibrate_radius: when the observations carry measured trunk radii (> 0), also
@@ -825,8 +846,9 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         kept = int(np.sum(np.asarray(dropped[1:]) == 0))
         among = (f", among the {kept} whose map never overflowed"
                  if 0 < kept < len(evaluated) - 1 else "")
-        why = (f"no later run kept every birth with a finite score; its map filled last, "
-               f"at step {fill_steps[best]}" if _chosen_by_fill(objective, dropped) else
+        why = (f"no later run kept every birth with a finite score; it dropped the fewest "
+               f"births, {dropped[best]}, its map full from step {fill_steps[best]}"
+               if _chosen_by_fill(objective, dropped) else
                f"the highest log marginal likelihood of the {len(evaluated)} filter "
                f"runs{among}")
         chosen = f"; returned iteration {best + 1}'s settings ({why})"
@@ -872,7 +894,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     elif stalled:
         verdict = (f"not converged: stopped after {done} iterations (none of the last "
                    f"{patience} runs beat the best run before them: the highest log "
-                   "marginal likelihood, or the latest-filling map when no run after the "
+                   "marginal likelihood, or the fewest dropped births when no run after the "
                    "first kept every birth with a finite score)")
     else:
         verdict = (f"not converged after {done} iterations (the last moved a noise std by "

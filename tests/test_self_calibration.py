@@ -828,50 +828,56 @@ def test_best_run_ranks_overflowed_runs_last(objective, dropped, expected):
 
 
 @pytest.mark.parametrize("objective, dropped, fill_step, expected", [
-    # Every EM run after the first overflowed: the map that filled last, not the score.
+    # Every EM run after the first overflowed: the fewest births dropped, not the score.
     ([50.0, 1.0, 9.0, 3.0], [0, 4, 7, 2], [100, 30, 20, 60], 3),
-    ([50.0, 1.0, 9.0, 3.0], [0, 4, 7, 2], [100, 60, 20, 60], 1),  # a tie: the earlier run
-    ([50.0, 1.0, 9.0, 3.0], [9, 4, 7, 2], [90, 30, 20, 25], 1),  # the first run never wins
-    # A run that kept room wins whatever the fill steps: they only rank overflowed runs.
+    # ... nor the map that filled last (Victoria Park key 4's pattern: run 1 filled last).
+    ([50.0, 1.0, 9.0, 3.0], [0, 9, 7, 6], [100, 42, 20, 41], 3),
+    ([50.0, 1.0, 9.0, 3.0], [0, 4, 7, 4], [100, 30, 20, 60], 3),  # a tie: the later fill
+    ([50.0, 1.0, 9.0, 3.0], [0, 4, 7, 4], [100, 60, 20, 60], 1),  # both tie: the earlier
+    ([50.0, 1.0, 9.0, 3.0], [1, 4, 7, 2], [90, 30, 20, 25], 3),  # the first run never wins
+    # A run that kept room wins whatever the counts: they only rank overflowed runs.
     ([50.0, 1.0, 9.0, 3.0], [0, 4, 0, 2], [100, 30, 100, 90], 2),
 ])
-def test_best_run_takes_the_map_that_filled_last_when_every_run_overflowed(
+def test_best_run_takes_the_fewest_dropped_births_when_every_run_overflowed(
         objective, dropped, fill_step, expected):
     assert sc._best_run(objective, dropped, fill_step) == expected
 
 
 @pytest.mark.parametrize("objective, dropped, fill_step, expected", [
     # A later run kept every birth but scored NaN: no fair run has a finite score, so the
-    # fill steps decide among the overflowed ones, and the messages say so (next test).
+    # births dropped decide among the overflowed ones, and the messages say so (next test).
     ([5.0, np.nan, 9.0, 3.0], [0, 0, 7, 2], [100, 100, 20, 60], 3),
     # An overflowed run with a NaN score loses to an overflowed finite one, whatever its fill.
     ([5.0, np.nan, 1.0], [0, 4, 7], [100, 90, 20], 2),
-    ([5.0, np.nan, np.nan], [0, 4, 7], [100, 90, 20], 1),  # all broken: the fill alone
+    ([5.0, np.nan, np.nan], [0, 4, 7], [100, 90, 20], 1),  # all broken: the count alone
     ([5.0], [3], [40], 0),  # one run: it is the only one to return
 ])
-def test_best_run_by_fill_step_edges(objective, dropped, fill_step, expected):
+def test_best_run_by_dropped_births_edges(objective, dropped, fill_step, expected):
     assert sc._best_run(objective, dropped, fill_step) == expected
     assert sc._chosen_by_fill(objective, dropped)
-    line = sc._stalled_line(9, objective, dropped, 2, fill_step)
-    assert f"map, which lasted until step {fill_step[expected]}" in line
+    # No likelihood ranks these runs: patience never stops EM on them.
+    assert sc._stalled(objective, dropped, 1, fill_step) is False
 
 
-def test_em_returns_the_latest_filling_run_and_hands_it_to_the_search(monkeypatch):
+def test_em_returns_the_fewest_dropping_run_and_hands_it_to_the_search(monkeypatch):
     """EM's filter runs scripted (the real runs, their log evidence and dropped births
-    replaced): every run overflows, at steps 50, 20, 90, 40, 30. With patience 2 EM stops
-    after the fifth run and returns run 3's settings (its map filled last, though run 2
-    scores highest); the verdict, the progress lines and ``fill_steps`` say so, and the
-    search receives run 3's ``RunScore`` as its known x1."""
+    replaced): every run overflows, at steps 50, 20, 90, 40, 30, 60, dropping 9, 30, 12, 20,
+    11, 40 births. Patience 2 does not stop EM (no run could be ranked by its likelihood),
+    and it returns run 5's settings: the fewest births dropped, though run 3's map filled
+    last and run 2 scores highest; the verdict, the progress lines and ``fill_steps`` say so,
+    and the search receives run 5's ``RunScore`` as its known x1."""
     from jaxslam import filter as filter_module
     from jaxslam.noise_scale import RunScore
 
-    scores, fills = [0.0, 10.0, 5.0, 4.0, 3.0], [50, 20, 90, 40, 30]
-    scripted = iter(zip(scores, fills))
+    scores, fills = [0.0, 10.0, 5.0, 4.0, 3.0, 2.0], [50, 20, 90, 40, 30, 60]
+    counts = [9, 30, 12, 20, 11, 40]
+    scripted = iter(zip(scores, fills, counts))
 
     def scored_run(*args, **kwargs):
         final, trace = filter_module.run_filter(*args, **kwargs)
-        total, fill = next(scripted)
-        births = jnp.zeros_like(trace.num_dropped_births).at[fill].set(7).at[fill + 5].set(2)
+        total, fill, count = next(scripted)
+        births = (jnp.zeros_like(trace.num_dropped_births).at[fill].set(count - 2)
+                  .at[fill + 5].set(2))
         return final, trace._replace(
             log_evidence=jnp.zeros_like(trace.log_evidence).at[0].set(total),
             num_dropped_births=births)
@@ -888,24 +894,24 @@ def test_em_returns_the_latest_filling_run_and_hands_it_to_the_search(monkeypatc
     _, info = sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0],
                                   iterations=6, tol=1e-9, scale_search=False,
                                   progress=lines.append)
-    assert info.iterations == 5 and not info.converged
+    assert info.iterations == 6 and not info.converged
     np.testing.assert_array_equal(info.fill_steps, fills)
-    np.testing.assert_array_equal(info.dropped_births, [9] * 5)
-    assert ("returned iteration 3's settings (no later run kept every birth with a finite "
-            "score; its map filled last, at step 90)") in info.verdict
-    assert "none of the last 2 runs beat iteration 3's map, which lasted until step 90" \
-        in lines[-1]
+    np.testing.assert_array_equal(info.dropped_births, counts)
+    assert ("returned iteration 5's settings (no later run kept every birth with a finite "
+            "score; it dropped the fewest births, 11, its map full from step 30)"
+            ) in info.verdict
+    assert not any("EM stops" in line for line in lines)
     assert "map full from step 50: 9 births dropped" in lines[0]
     # No likelihood ranked these settings: the warning and the verdict say so.
     assert "no likelihood ranked the settings (see warnings)" in info.verdict
     assert any(f"every EM run filled the map's {CONFIG.max_landmarks} slots" in warning
                for warning in info.warnings), info.warnings
-    scripted = iter(zip(scores, fills))
+    scripted = iter(zip(scores, fills, counts))
     monkeypatch.setattr(sc, "search_noise_scales", search)
     with pytest.raises(Handed) as handed:
         sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0],
                             iterations=6, tol=1e-9)
-    assert handed.value.args[0] == RunScore(5.0, 9, 90)
+    assert handed.value.args[0] == RunScore(3.0, 11, 30)
 
 
 def _search_found(motion_dropped, observation_dropped, objective=1.0):
@@ -979,24 +985,25 @@ def test_dropped_births_recorded_when_the_map_overflows():
     ([5.0, 9.0, 7.0, 10.0, 6.0], [0, 0, 0, 0, 0], 2, False),  # came back: counts anew
     ([99.0, 1.0, 2.0, 3.0], [0, 0, 0, 0], 1, False),     # the starting run is never the best
     ([5.0, 9.0, 7.0, 8.0], [0, 3, 0, 0], 2, False),      # run 1 overflowed: run 3 is best
-    ([5.0, 9.0, 7.0, 8.0], [0, 3, 2, 1], 2, True),       # all overflowed: the score alone
+    ([5.0, 9.0, 7.0, 8.0], [0, 3, 2, 1], 2, False),      # all overflowed: EM goes on
+    ([5.0, 9.0, 7.0, 8.0, 6.0], [0, 3, 0, 1, 1], 2, True),  # a fair run 2, then two more
     ([5.0, np.nan, np.nan, np.nan], [0, 0, 0, 0], 2, False),  # no finite score: no best
 ])
 def test_stalled_counts_the_runs_since_the_best(objective, dropped, patience, expected):
     assert sc._stalled(objective, dropped, patience) is expected
 
 
-def test_stalled_follows_the_fill_steps_when_every_run_overflowed():
-    # Run 1 scores best but its map filled first: run 3, whose map lasted longest, is the
-    # best, so two runs below run 1 do not stop EM; a later one that fills earlier does.
+def test_stalled_waits_while_every_run_overflowed():
+    # No run after the first kept every birth: no likelihood ranks them, so patience never
+    # stops EM, whatever the scores, counts or fill steps; once a fair run is met it counts.
     objective, dropped = [5.0, 9.0, 7.0, 8.0], [2, 3, 2, 1]
-    assert sc._stalled(objective, dropped, 2) is True  # no fill steps: the score alone
-    assert sc._stalled(objective, dropped, 2, [10, 20, 30, 40]) is False
-    assert sc._stalled(objective + [1.0, 2.0], dropped + [5, 5], 2,
-                       [10, 20, 30, 40, 35, 12]) is True
-    line = sc._stalled_line(6, objective + [1.0, 2.0], dropped + [5, 5], 2,
-                            [10, 20, 30, 40, 35, 12])
-    assert "none of the last 2 runs beat iteration 4's map, which lasted until step 40" in line
+    for fill_step in (None, [10, 20, 30, 40], [40, 30, 20, 10]):
+        assert sc._stalled(objective, dropped, 1, fill_step) is False
+    objective, dropped = objective + [6.0, 4.0], dropped + [0, 5]
+    assert sc._stalled(objective, dropped, 2, [10, 20, 30, 40, 50, 12]) is False
+    assert sc._stalled(objective, dropped, 1, [10, 20, 30, 40, 50, 12]) is True
+    line = sc._stalled_line(6, objective, dropped, 1, [10, 20, 30, 40, 50, 12])
+    assert "none of the last 1 runs beat iteration 5's 6.0: EM stops" in line
 
 
 def test_patience_stops_em_and_returns_the_best_run(monkeypatch):
