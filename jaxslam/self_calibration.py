@@ -634,7 +634,8 @@ def _unranked_warning(objective, dropped, found: ScaleSearch | None, slots: int)
     may return overflowed the map (``_chosen_by_fill``; objective (R,), dropped (R,)) and
     the scale search, when it ran (``found``), met no fair candidate either (``any_fair``).
     The returned settings are then a fallback (EM's run that dropped the fewest births,
-    the search's map that filled last), which on Victoria Park key 4 ran 34.8 m off against
+    the search's map that filled last); on Victoria Park keys 4 and 6, under EM's earlier
+    fallback (the map that filled last, with ``patience``), such settings ran 32-35 m off
     GPS (docs/results.md). Else []."""
     if not _chosen_by_fill(objective, dropped) or (found is not None and any_fair(found)):
         return []
@@ -894,8 +895,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     elif stalled:
         verdict = (f"not converged: stopped after {done} iterations (none of the last "
                    f"{patience} runs beat the best run before them: the highest log "
-                   "marginal likelihood, or the fewest dropped births when no run after the "
-                   "first kept every birth with a finite score)")
+                   "marginal likelihood among the runs that kept every birth)")
     else:
         verdict = (f"not converged after {done} iterations (the last moved a noise std by "
                    f"more than {tol:.0%})")
