@@ -574,9 +574,9 @@ def fewest_dropped(dropped, fill_step) -> int:
 
 def _stalled(objective, dropped, patience: int | None, fill_step=None) -> bool:
     """Whether none of the last ``patience`` filter runs is the best so far by ``_best_run``'s
-    rule (the first run never counts as best; a run whose map overflowed counts only when
-    every run's did, so such a run does not beat a lower fair one; a tie keeps the earlier
-    run). objective (R,), dropped (R,), fill_step (R,) or None. None patience: never. Nor
+    rule (the first run never counts as best; a run whose map overflowed does not beat a
+    lower fair one; a tie keeps the earlier run). objective (R,), dropped (R,), fill_step
+    (R,) or None. None patience: never. Nor
     while no run after the first kept every birth with a finite score (``_chosen_by_fill``):
     no likelihood ranks such runs, and EM's later iterations may still reach one that keeps
     its map (on Victoria Park every key's fifth run dropped the fewest births of runs 2-5).
@@ -620,9 +620,10 @@ def _progress_line(iteration: int, objective: float, typical, change: float,
 
 
 def _chosen_by_fill(objective, dropped) -> bool:
-    """Whether ``_best_run`` ranks EM's runs by their fill step: no run it may return (every
-    run after the first; the only one when there is one) kept every birth with a finite
-    score, and one of them overflowed. objective (R,), dropped (R,)."""
+    """Whether ``_best_run`` ranks EM's runs by the births they dropped (``fewest_dropped``;
+    the fill step breaks ties), not by likelihood: no run it may return (every run after the
+    first; the only one when there is one) kept every birth with a finite score, and one of
+    them overflowed. objective (R,), dropped (R,)."""
     first = 1 if len(objective) > 1 else 0
     scores = np.asarray(objective, np.float64)[first:]
     later = np.asarray(dropped)[first:]
@@ -642,10 +643,9 @@ def _unranked_warning(objective, dropped, found: ScaleSearch | None, slots: int)
     runs = "every EM run" + (" and every candidate of the noise-scale search"
                              if found is not None else "")
     return [f"no calibration run kept every landmark birth: {runs} filled the map's {slots} "
-            "slots, so no likelihood ranked the settings and those returned are a fallback "
-            "(the run that overflowed least); expect trees split into several landmarks and a poor "
-            "run (too few map slots for this log, or observations of one tree that fail "
-            "to match with every noise tried)"]
+            "slots, so no likelihood ranked the settings returned; expect trees split into "
+            "several landmarks and a poor run (too few map slots for this log, or "
+            "observations of one tree that fail to match with every noise tried)"]
 
 
 def _stalled_line(iteration: int, objective, dropped, patience: int, fill_step) -> str:

@@ -847,7 +847,7 @@ def test_best_run_takes_the_fewest_dropped_births_when_every_run_overflowed(
     # A later run kept every birth but scored NaN: no fair run has a finite score, so the
     # births dropped decide among the overflowed ones, and the messages say so (next test).
     ([5.0, np.nan, 9.0, 3.0], [0, 0, 7, 2], [100, 100, 20, 60], 3),
-    # An overflowed run with a NaN score loses to an overflowed finite one, whatever its fill.
+    # An overflowed run with a NaN score loses to an overflowed finite one, whatever its count.
     ([5.0, np.nan, 1.0], [0, 4, 7], [100, 90, 20], 2),
     ([5.0, np.nan, np.nan], [0, 4, 7], [100, 90, 20], 1),  # all broken: the count alone
     ([5.0], [3], [40], 0),  # one run: it is the only one to return
@@ -991,6 +991,17 @@ def test_dropped_births_recorded_when_the_map_overflows():
 ])
 def test_stalled_counts_the_runs_since_the_best(objective, dropped, patience, expected):
     assert sc._stalled(objective, dropped, patience) is expected
+
+
+@pytest.mark.parametrize("dropped, fill_step, expected", [
+    ([3, 9, 1], [5, 9, 2], 2),          # the fewest births, whatever the fill
+    ([3, 1, 1], [5, 4, 9], 2),          # a tie: the later fill
+    ([3, 1, 1], [5, 9, 9], 1),          # both tie: the first
+    ([0, 4, 0], [9, 3, 9], 1),          # only overflowed runs count
+    ([0, 0], [9, 9], -1),               # none overflowed
+])
+def test_fewest_dropped(dropped, fill_step, expected):
+    assert sc.fewest_dropped(dropped, fill_step) == expected
 
 
 def test_stalled_waits_while_every_run_overflowed():
