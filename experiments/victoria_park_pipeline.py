@@ -737,6 +737,7 @@ def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = Non
         components, as the smoothed path; needs ``smooth``).
     """
     _check_smoothing(smooth, smooth_visit_gap, close_loops)
+    smoother = smoother_options(LEGACY) if smoother is None else smoother
     config, params, controls, observations, log, steps = _run_inputs(
         data, config, params, observations, num_scans, dtype, steering_bias)
     outputs, compile_s, run_s = _timed_run(config, key, params, controls, observations,
@@ -753,11 +754,11 @@ def run_victoria_park(key, data: VictoriaPark, config: FilterConfig | None = Non
     closed, closed_gps, closures, close_s = None, None, None, 0.0
     if close_loops:
         start = time.perf_counter()
-        rounds = (smoother_options(LEGACY) if smoother is None else smoother).get(
-            "calibrate_rounds", 0)  # the set's own count, as the smoothed path's
+        # The set's own rounds (smooth_path's default 0 when it names none), as the
+        # smoothed path's.
         closed, closures = offline_path(outputs[6], controls, observations, np.zeros(3),
                                         params, config.motion_model, close_loops=True,
-                                        calibrate_rounds=rounds)
+                                        calibrate_rounds=smoother.get("calibrate_rounds", 0))
         close_s = time.perf_counter() - start
         closed_gps = _gps_score(log, closed, steps)
     return VictoriaParkRun(

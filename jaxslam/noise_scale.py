@@ -250,11 +250,10 @@ def best_scale(scales, objective, dropped=None, fill_step=None) -> float:
     last, ties to the scale nearest 1 (in log), then to the first (``latest_fill``);
     without it, or when no run overflowed, 1."""
     scales = np.asarray(scales)
-    objective = np.where(np.isfinite(objective), objective, -np.inf)
-    if dropped is not None:
-        objective = np.where(np.asarray(dropped) == 0, objective, -np.inf)
-    if np.any(np.isfinite(objective)):
-        return float(scales[int(np.argmax(objective))])
+    objective = np.asarray(objective, np.float64)
+    competing = np.isfinite(objective) if dropped is None else fair(objective, dropped)
+    if np.any(competing):
+        return float(scales[int(np.argmax(np.where(competing, objective, -np.inf)))])
     if dropped is None or fill_step is None or not np.any(np.asarray(dropped) > 0):
         return 1.0
     # Rounded: 1/3 and 3 (say) must tie however the logs round.
@@ -268,13 +267,27 @@ def latest_fill(dropped, fill_step, tie_key=None) -> int:
     noise, the fewer trees it splits and the later its map fills (module docstring). The
     births dropped do not break ties: a stopped run counts those of its fill step, a whole
     run (EM's) those of every step."""
-    dropped, fill_step = np.asarray(dropped), np.asarray(fill_step)
-    tie_key = np.zeros(dropped.shape) if tie_key is None else np.asarray(tie_key)
-    overflowed = np.flatnonzero(dropped > 0)
+    tie_key = np.zeros(np.shape(dropped)) if tie_key is None else tie_key
+    return first_overflowed(dropped, -np.asarray(fill_step), tie_key)
+
+
+def fair(objective, dropped) -> np.ndarray:
+    """(S,) bool: the runs that dropped no birth and scored a finite log likelihood, the ones
+    a likelihood may rank (module docstring; ``dropped`` -1 marks a run not made)."""
+    return (np.asarray(dropped) == 0) & np.isfinite(np.asarray(objective, np.float64))
+
+
+def first_overflowed(dropped, *keys) -> int:
+    """Index of the overflowed run (``dropped`` (S,) > 0) that sorts first by ``keys`` (each
+    (S,), the first the primary one; ties go to the next key, then to the run's order); -1
+    when no run overflowed. ``latest_fill`` and EM's ``self_calibration._best_run`` rank
+    overflowed runs with it."""
+    overflowed = np.flatnonzero(np.asarray(dropped) > 0)
     if overflowed.size == 0:
         return -1
     # lexsort: the last key is the primary one; the stable sort keeps the given order.
-    return int(overflowed[np.lexsort((tie_key[overflowed], -fill_step[overflowed]))[0]])
+    order = np.lexsort([np.asarray(key)[overflowed] for key in reversed(keys)])
+    return int(overflowed[order[0]])
 
 
 def default_workers() -> int:
@@ -349,8 +362,8 @@ def walk_stage(scales, score, stop_at_first_drop: bool = True, workers: int = 1,
         result = results[index]
         if isinstance(result, Future):
             result = results[index] = result.result()
-        fair = result.dropped_births == 0 and np.isfinite(result.log_likelihood)
-        return float(result.log_likelihood) if fair else -np.inf
+        ranked = fair(result.log_likelihood, result.dropped_births)
+        return float(result.log_likelihood) if ranked else -np.inf
 
     first = int(np.flatnonzero(scales == 1.0)[0])
     up = [int(i) for i in np.argsort(scales, kind="stable") if scales[i] > 1.0]
@@ -385,7 +398,7 @@ def any_fair(found: ScaleSearch) -> bool:
     the search's choice (the observation stage fell back on the map that filled last)."""
     dropped = np.concatenate([found.motion_dropped, found.observation_dropped])
     objective = np.concatenate([found.motion_objective, found.observation_objective])
-    return bool(np.any((dropped == 0) & np.isfinite(objective)))
+    return bool(np.any(fair(objective, dropped)))
 
 
 def describe_search(found: ScaleSearch) -> str:

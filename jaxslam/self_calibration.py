@@ -127,7 +127,7 @@ from jaxslam.landmark_merge import merge_split_landmarks, relabel
 from jaxslam.motion import control_to_odometry
 from jaxslam.noise_scale import (DEFAULT_SCALES, MOTION_FIELDS, OBSERVATION_FIELDS, ScaleSearch,
                                  any_fair, check_scales, check_workers, describe_search,
-                                 score_trace, search_noise_scales)
+                                 fair, first_overflowed, score_trace, search_noise_scales)
 from jaxslam.noise_fit import (MIN_MOVES, MIN_OBSERVATIONS, MIN_SIGHTINGS, STD_FLOOR,
                                group_relative_errors, measured_radii, motion_noise_update,
                                observation_noise_update, radius_noise_from_history,
@@ -547,14 +547,14 @@ def _best_run(objective, dropped, fill_step=None) -> int:
     scores = np.asarray(objective, np.float64)
     scores[0] = -np.inf if len(scores) > 1 else scores[0]
     full = np.asarray(dropped) > 0
-    if fill_step is not None and _chosen_by_fill(objective, dropped):
+    if fill_step is not None and _no_fair_run(objective, dropped):
         first = 1 if len(scores) > 1 else 0  # the first run is never returned (above)
         later = np.asarray(dropped)[first:]
         # A run whose score is not finite (a broken run) is taken only if every one is.
         finite = np.isfinite(scores[first:])
         eligible = np.where(finite, later, 0) if np.any(finite & (later > 0)) else later
         return first + fewest_dropped(eligible, np.asarray(fill_step)[first:])
-    if np.any(np.isfinite(scores) & ~full):
+    if np.any(fair(scores, dropped)):
         scores = np.where(full, -np.inf, scores)
     if not np.any(np.isfinite(scores)):
         return len(scores) - 1
@@ -564,12 +564,7 @@ def _best_run(objective, dropped, fill_step=None) -> int:
 def fewest_dropped(dropped, fill_step) -> int:
     """Index of the overflowed run (``dropped`` (R,) > 0) that dropped the fewest births;
     ties go to the latest ``fill_step`` (R,), then to the first; -1 when none overflowed."""
-    dropped, fill_step = np.asarray(dropped), np.asarray(fill_step)
-    overflowed = np.flatnonzero(dropped > 0)
-    if overflowed.size == 0:
-        return -1
-    # lexsort: the last key is the primary one; the stable sort keeps the given order.
-    return int(overflowed[np.lexsort((-fill_step[overflowed], dropped[overflowed]))[0]])
+    return first_overflowed(dropped, dropped, -np.asarray(fill_step))
 
 
 def _stalled(objective, dropped, patience: int | None, fill_step=None) -> bool:
@@ -577,11 +572,11 @@ def _stalled(objective, dropped, patience: int | None, fill_step=None) -> bool:
     rule (the first run never counts as best; a run whose map overflowed does not beat a
     lower fair one; a tie keeps the earlier run). objective (R,), dropped (R,), fill_step
     (R,) or None. None patience: never. Nor
-    while no run after the first kept every birth with a finite score (``_chosen_by_fill``):
+    while no run after the first kept every birth with a finite score (``_no_fair_run``):
     no likelihood ranks such runs, and EM's later iterations may still reach one that keeps
     its map (on Victoria Park every key's fifth run dropped the fewest births of runs 2-5).
     Can first hold after patience + 2 runs."""
-    if patience is None or _chosen_by_fill(objective, dropped):
+    if patience is None or _no_fair_run(objective, dropped):
         return False
     return len(objective) - 1 - _best_run(objective, dropped, fill_step) >= patience
 
@@ -619,26 +614,25 @@ def _progress_line(iteration: int, objective: float, typical, change: float,
             f"{change:.1%})")
 
 
-def _chosen_by_fill(objective, dropped) -> bool:
+def _no_fair_run(objective, dropped) -> bool:
     """Whether ``_best_run`` ranks EM's runs by the births they dropped (``fewest_dropped``;
     the fill step breaks ties), not by likelihood: no run it may return (every run after the
     first; the only one when there is one) kept every birth with a finite score, and one of
     them overflowed. objective (R,), dropped (R,)."""
     first = 1 if len(objective) > 1 else 0
-    scores = np.asarray(objective, np.float64)[first:]
     later = np.asarray(dropped)[first:]
-    return not np.any(np.isfinite(scores) & (later == 0)) and bool(np.any(later > 0))
+    return not np.any(fair(np.asarray(objective)[first:], later)) and bool(np.any(later > 0))
 
 
 def _unranked_warning(objective, dropped, found: ScaleSearch | None, slots: int) -> list[str]:
     """The plain-word warning for settings no likelihood ranked: every EM run ``_best_run``
-    may return overflowed the map (``_chosen_by_fill``; objective (R,), dropped (R,)) and
+    may return overflowed the map (``_no_fair_run``; objective (R,), dropped (R,)) and
     the scale search, when it ran (``found``), met no fair candidate either (``any_fair``).
     The returned settings are then a fallback (EM's run that dropped the fewest births,
     the search's map that filled last); on Victoria Park keys 4 and 6, under EM's earlier
     fallback (the map that filled last, with ``patience``), such settings ran 32-35 m off
     GPS (docs/results.md). Else []."""
-    if not _chosen_by_fill(objective, dropped) or (found is not None and any_fair(found)):
+    if not _no_fair_run(objective, dropped) or (found is not None and any_fair(found)):
         return []
     runs = "every EM run" + (" and every candidate of the noise-scale search"
                              if found is not None else "")
@@ -849,7 +843,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                  if 0 < kept < len(evaluated) - 1 else "")
         why = (f"no later run kept every birth with a finite score; it dropped the fewest "
                f"births, {dropped[best]}, its map full from step {fill_steps[best]}"
-               if _chosen_by_fill(objective, dropped) else
+               if _no_fair_run(objective, dropped) else
                f"the highest log marginal likelihood of the {len(evaluated)} filter "
                f"runs{among}")
         chosen = f"; returned iteration {best + 1}'s settings ({why})"

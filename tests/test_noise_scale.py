@@ -248,6 +248,18 @@ def test_best_scale_takes_the_map_that_filled_last_when_every_run_overflowed(
                          np.array(dropped), np.array(fill_step)) == expected
 
 
+def test_fair_runs_dropped_nothing_and_scored_a_finite_value():
+    objective = np.array([1.0, np.nan, np.inf, 2.0, 3.0])
+    dropped = np.array([0, 0, 0, 4, -1])  # -1: a candidate the walk did not run
+    np.testing.assert_array_equal(ns.fair(objective, dropped),
+                                  [True, False, False, False, False])
+    assert ns.fair(5.0, 0) and not ns.fair(5.0, 1)  # one RunScore's fields
+    # first_overflowed: the primary key first, ties to the next, then to the run's order.
+    assert ns.first_overflowed([0, 2, 2, 2], [9, 3, 1, 1], [0, 0, 5, 4]) == 3
+    assert ns.first_overflowed([0, 2, 2], [9, 1, 1]) == 1
+    assert ns.first_overflowed([0, 0], [1, 2]) == -1
+
+
 def test_fill_ties_go_to_the_scale_nearest_one_then_to_the_first():
     grid = np.array([0.25, 0.5, 1.0, 2.0, 4.0])
     dropped = np.array([3, 3, 0, 3, 3])  # x1 fair but not finite: it cannot be taken

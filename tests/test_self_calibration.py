@@ -854,7 +854,7 @@ def test_best_run_takes_the_fewest_dropped_births_when_every_run_overflowed(
 ])
 def test_best_run_by_dropped_births_edges(objective, dropped, fill_step, expected):
     assert sc._best_run(objective, dropped, fill_step) == expected
-    assert sc._chosen_by_fill(objective, dropped)
+    assert sc._no_fair_run(objective, dropped)
     # No likelihood ranks these runs: patience never stops EM on them.
     assert sc._stalled(objective, dropped, 1, fill_step) is False
 
