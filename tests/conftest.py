@@ -32,10 +32,20 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 # multiply-adds): a 12-step float32 final error moved by 3.4e-5 m (5.6e-6 m between two
 # optimised programs), and one chaotic run ended 0.48 m off instead of 3.10 m.
 # JAXSLAM_TEST_OPTIMIZED=1 tests the fully optimised programs; the benchmarks and the
-# ``jaxslam`` subprocesses that tests start always run them. The flag is not part of the key
+# ``jaxslam`` subprocesses that tests start always run them at that level. The flag is not part of the key
 # of JAX's in-memory compilation caches, so it is set once, here, before anything compiles.
 OPTIMISATION_TURNED_DOWN = os.environ.get("JAXSLAM_TEST_OPTIMIZED", "") in ("", "0")
 jax.config.update("jax_disable_most_optimizations", OPTIMISATION_TURNED_DOWN)
+# XLA:CPU's older emitters compile the filter's programs about 35 % faster than its fusion
+# emitters (a filter-loop and a proposal-rounds test: 40 s -> 26-28 s in one process, jax
+# 0.10.2), so the turned-down tier uses them too. XLA reads XLA_FLAGS when the CPU backend
+# starts (after this file runs); the ``jaxslam`` and study subprocesses that tests start
+# inherit them, and a test that sets its child's XLA_FLAGS starts from
+# ``JAXSLAM_TEST_XLA_FLAGS`` (the child then compiles what this process compiles).
+TEST_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false" if OPTIMISATION_TURNED_DOWN else ""
+os.environ["JAXSLAM_TEST_XLA_FLAGS"] = TEST_XLA_FLAGS
+if TEST_XLA_FLAGS and TEST_XLA_FLAGS not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {TEST_XLA_FLAGS}".strip()
 
 
 @pytest.fixture(scope="session")

@@ -645,21 +645,25 @@ def test_run_filter_stops_at_the_first_dropped_birth():
     assert not np.array_equal(np.asarray(final_all.particles.pose),
                               np.asarray(final_stop.particles.pose))
     # No overflow: the flag changes nothing. The cond-free scan (``stop_at_dropped_birth``
-    # None) is another compiled program: the particles' paths, ancestry and associations
-    # (the lineage) and resampling are bit-identical, and the sums over particles (weighted
-    # mean pose, ESS, evidence) agree to float32 rounding of differently fused reductions
-    # (1e-6 relative seen; 1e-5).
+    # None) is another compiled program: the particles' ancestry, associations and births
+    # and the resampling are identical, their poses and the sums over particles (weighted
+    # mean pose, ESS, evidence) agree to float32 rounding of differently fused arithmetic
+    # (bit-identical with XLA:CPU's fusion emitters; with its older emitters, which the
+    # default test tier uses, 5e-7 relative in the poses and 1.5e-5 in the ESS, whose
+    # squared normalised weights magnify the log-weights' rounding; 1e-4).
     _, off = run_filter(CONFIG, key, params, controls, obs, poses[0], record_lineage=True)
     _, on = run_filter(CONFIG, key, params, controls, obs, poses[0], record_lineage=True,
                        stop_at_dropped_birth=True)
     chex.assert_trees_all_equal(on, off)
     plain = jax.jit(lambda k: scan_filter(CONFIG, k, make_filter(CONFIG).init(poses[0]),
                                           params, controls, obs, True)[1])(key)
-    chex.assert_trees_all_equal((plain.lineage, plain.best_pose, plain.resampled),
-                                (off.lineage, off.best_pose, off.resampled))
-    chex.assert_trees_all_close(plain, off, rtol=1e-5, atol=1e-5)
+    chex.assert_trees_all_equal(
+        (plain.lineage._replace(pose=None), plain.resampled),
+        (off.lineage._replace(pose=None), off.resampled))
+    chex.assert_trees_all_close(plain, off, rtol=1e-4, atol=1e-5)
     # Under vmap the cond becomes a select of both branches: the same rows as each run alone
-    # (float32 rounding of the batched program: 1e-5).
+    # (float32 rounding of the batched program; the ESS's 2.2e-5 relative with the older
+    # emitters, as above: 1e-4).
     keys = jax.random.split(key, 2)
     batched = jax.jit(jax.vmap(lambda k: scan_filter(
         small, k, make_filter(small).init(poses[0]), params, controls, obs,
@@ -668,7 +672,7 @@ def test_run_filter_stops_at_the_first_dropped_birth():
         _, alone = run_filter(small, k, params, controls, obs, poses[0],
                               stop_at_dropped_birth=True)
         chex.assert_trees_all_close(jax.tree.map(lambda a, run=run: a[run], batched), alone,
-                                    rtol=1e-5, atol=1e-5)
+                                    rtol=1e-4, atol=1e-5)
     for bad in (1, "yes", None, np.array([True])):
         with pytest.raises(ValueError, match="stop_at_dropped_birth must be True or False"):
             run_filter(small, key, params, controls, obs, poses[0], stop_at_dropped_birth=bad)
@@ -696,11 +700,14 @@ def test_run_filter_stop_flag_is_dynamic_and_handles_empty_logs():
     assert np.all(after.match == -1) and np.all(after.birth_slot == -1)
     np.testing.assert_array_equal(after.ancestor,
                                   np.broadcast_to(np.arange(16), after.ancestor.shape))
+    # Traced inside an outer jit the run is another compiled program: float32 rounding of
+    # differently fused arithmetic (bit-identical with XLA:CPU's fusion emitters, 9e-7
+    # relative with its older ones, which the default test tier uses; 1e-5).
     traced = jax.jit(lambda flag: run_filter(small, key, params, controls, obs, poses[0],
                                              stop_at_dropped_birth=flag)[1].log_evidence)
-    np.testing.assert_array_equal(traced(True), np.asarray(run_filter(
+    np.testing.assert_allclose(traced(True), np.asarray(run_filter(
         small, key, params, controls, obs, poses[0], stop_at_dropped_birth=True)[1]
-        .log_evidence))
+        .log_evidence), rtol=1e-5, atol=1e-5)
     empty = jax.tree.map(lambda a: a[:0], obs)
     for flag in (False, True):
         final, trace = run_filter(small, key, params, controls[:0], empty, poses[0],

@@ -662,8 +662,11 @@ def child_command(tmp_path, config, out, cache, chunk_delay=0.0):
 
 
 def child_env(**extra):
-    env = {name: value for name, value in os.environ.items() if name != "XLA_FLAGS"}
-    return dict(env, PYTHONPATH=str(REPO), **extra)
+    """The test process's environment with its own XLA_FLAGS (conftest's) before ``extra``'s."""
+    env = dict(os.environ, PYTHONPATH=str(REPO), XLA_FLAGS=os.environ["JAXSLAM_TEST_XLA_FLAGS"])
+    if "XLA_FLAGS" in extra:
+        extra["XLA_FLAGS"] = f"{env['XLA_FLAGS']} {extra['XLA_FLAGS']}".strip()
+    return dict(env, **extra)
 
 
 def run_child(tmp_path, config, out, cache, **env):

@@ -201,7 +201,8 @@ def test_two_devices_are_bit_identical(reference, tmp_path, run_width):
                               out=str(tmp_path / "two"),
                               jax=study_store.numeric_jax_settings()))
     env = dict(os.environ, PYTHONPATH=str(REPO),
-               XLA_FLAGS="--xla_force_host_platform_device_count=2")
+               XLA_FLAGS=f"{os.environ['JAXSLAM_TEST_XLA_FLAGS']} "
+                         "--xla_force_host_platform_device_count=2")
     child = subprocess.run([sys.executable, str(script), payload], capture_output=True,
                            text=True, timeout=600, cwd=REPO, env=env)
     assert child.returncode == 0, child.stderr[-3000:]
