@@ -2,6 +2,8 @@
 part in an association, bounded by range and bearing in O(M + K)) against a NumPy float64
 reference and against the visibility rule it bounds; the count of such landmarks a window
 leaves out (``StepInfo.window_cut``, ``Trace.window_cut``) in the filter; the run warning."""
+import functools
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -208,6 +210,29 @@ def test_may_take_part_with_observations_edges():
     assert saturated(last - 0.01) and not saturated(last + 0.01)
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _association_and_guard(config, params, particle, pose, obs, pose_cov):
+    """One particle's association at ``pose`` (``step_propose.associate``) and the guard's
+    answer (``landmarks.may_take_part``), in one compiled call (200 trials a case): the
+    matched slot of each observation (K,), the landmarks counted as expected (M,), the ring
+    landmarks that gate with a valid observation and so set it aside (M,) (``visibility``;
+    the caller ignores them on the hard boundary) and the landmarks the guard keeps (M,)."""
+    from jaxslam.step_propose import associate
+
+    found = associate(config, params, particle, pose, obs, pose_cov)
+    predicted = ekf.predict_measurements(pose, particle.landmark_mean, particle.landmark_cov,
+                                         params)
+    width = params.airlock_sigmas * jnp.sqrt(predicted.s_rr)
+    ring = (particle.active & (predicted.range > params.max_range - width)
+            & (predicted.range <= params.max_range + width))
+    gated = jnp.any(obs.valid[:, None] & (ekf.mahalanobis_sq(obs.z, predicted)
+                                          <= params.association_gate), axis=0)
+    kept = landmarks.may_take_part(pose, particle.landmark_mean, particle.landmark_cov,
+                                   particle.active, params, config.boundary, obs.z, obs.valid,
+                                   pose_cov)
+    return found.match, found.visibility.expected, ring & gated, kept
+
+
 @pytest.mark.parametrize("boundary", ["hard", "loose", "loose_match"])
 @pytest.mark.parametrize("with_pose_cov", [False, True])
 @pytest.mark.parametrize("half_view", [np.pi, 0.8])
@@ -224,7 +249,6 @@ def test_every_landmark_the_association_uses_is_kept(boundary, with_pose_cov, ha
     config = FilterConfig(num_particles=1, max_landmarks=30, max_obs=6, boundary=boundary)
     params = _params(max_range=10.0, miss_range=8.0, miss_bearing=half_view)
     left_out = 0
-    from jaxslam.step_propose import associate
     from mapped_state import mapped_state
 
     used_total = 0
@@ -248,24 +272,14 @@ def test_every_landmark_the_association_uses_is_kept(boundary, with_pose_cov, ha
                                    jnp.zeros(6, particle.pose.dtype), jnp.full(6, -1, jnp.int32))
         pose_cov = (jnp.asarray(np.diag([0.05, 0.05, 0.02]), particle.pose.dtype)
                     if with_pose_cov else None)
-        found = associate(config, params, particle, pose, obs, pose_cov)
+        match, expected, ring_gated, kept = (np.asarray(a) for a in _association_and_guard(
+            config, params, particle, pose, obs, pose_cov))
         matched = np.zeros(30, bool)
-        matched[np.asarray(found.match)[np.asarray(found.match) >= 0]] = True
+        matched[match[match >= 0]] = True
         # A ring landmark that gates with an observation sets it aside (``visibility``);
         # ``explained`` matters only for expected landmarks, which are counted already.
-        predicted = ekf.predict_measurements(pose, particle.landmark_mean,
-                                             particle.landmark_cov, params)
-        width = params.airlock_sigmas * jnp.sqrt(predicted.s_rr)
-        ring = (particle.active & (predicted.range > params.max_range - width)
-                & (predicted.range <= params.max_range + width))
-        gated = jnp.any(obs.valid[:, None] & (ekf.mahalanobis_sq(obs.z, predicted)
-                                              <= params.association_gate), axis=0)
-        sets_aside = np.asarray(ring & gated) if boundary != "hard" else False
-        used = matched | np.asarray(found.visibility.expected) | sets_aside
-        kept = np.asarray(landmarks.may_take_part(pose, particle.landmark_mean,
-                                                  particle.landmark_cov, particle.active,
-                                                  params, boundary, obs.z, obs.valid,
-                                                  pose_cov))
+        sets_aside = ring_gated if boundary != "hard" else False
+        used = matched | expected | sets_aside
         assert not np.any(used & ~kept), trial
         used_total += used.sum()
         range_rules = ref_may_take_part(pose, particle.landmark_mean, particle.landmark_cov,
