@@ -32,8 +32,9 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 # multiply-adds): a 12-step float32 final error moved by 3.4e-5 m (5.6e-6 m between two
 # optimised programs), and one chaotic run ended 0.48 m off instead of 3.10 m.
 # JAXSLAM_TEST_OPTIMIZED=1 tests the fully optimised programs; the benchmarks and the
-# ``jaxslam`` subprocesses that tests start always run them at that level. The flag is not part of the key
-# of JAX's in-memory compilation caches, so it is set once, here, before anything compiles.
+# ``jaxslam`` subprocesses that tests start always run at that level. The flag is not part
+# of the key of JAX's in-memory compilation caches, so it is set once, here, before anything
+# compiles.
 OPTIMISATION_TURNED_DOWN = os.environ.get("JAXSLAM_TEST_OPTIMIZED", "") in ("", "0")
 jax.config.update("jax_disable_most_optimizations", OPTIMISATION_TURNED_DOWN)
 # XLA:CPU's older emitters compile the filter's programs about 35 % faster than its fusion
