@@ -15,6 +15,8 @@ import importlib.util
 import os
 import pathlib
 import shutil
+import subprocess
+import sys
 import tempfile
 
 import jax
@@ -43,8 +45,24 @@ jax.config.update("jax_disable_most_optimizations", OPTIMISATION_TURNED_DOWN)
 # starts (after this file runs); the ``jaxslam`` and study subprocesses that tests start
 # inherit them, and a test that sets its child's XLA_FLAGS starts from
 # ``JAXSLAM_TEST_XLA_FLAGS`` (the child then compiles what this process compiles).
-TEST_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false" if OPTIMISATION_TURNED_DOWN else ""
-os.environ["JAXSLAM_TEST_XLA_FLAGS"] = TEST_XLA_FLAGS
+# XLA aborts the process on a flag it does not know, so a jaxlib that dropped this one gets
+# none (probed once, in a child, by the first test process; pytest-xdist's workers inherit
+# the answer).
+
+
+def _starts_with(flags: str) -> bool:
+    """Whether this jaxlib's CPU backend starts with ``flags`` added to XLA_FLAGS."""
+    env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {flags}".strip())
+    probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices('cpu')"], env=env,
+                           capture_output=True, timeout=300)
+    return probe.returncode == 0
+
+
+if "JAXSLAM_TEST_XLA_FLAGS" not in os.environ:
+    FASTER_COMPILING = "--xla_cpu_use_fusion_emitters=false"
+    os.environ["JAXSLAM_TEST_XLA_FLAGS"] = (
+        FASTER_COMPILING if OPTIMISATION_TURNED_DOWN and _starts_with(FASTER_COMPILING) else "")
+TEST_XLA_FLAGS = os.environ["JAXSLAM_TEST_XLA_FLAGS"]
 if TEST_XLA_FLAGS and TEST_XLA_FLAGS not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {TEST_XLA_FLAGS}".strip()
 
