@@ -602,12 +602,16 @@ def _fit_warnings(last: _MStep | None, steps: int, radius_step: _MStep | None = 
 
 
 def _progress_line(iteration: int, objective: float, typical, change: float,
-                   dropped: int = 0, fill_step: int | None = None) -> str:
+                   dropped: int = 0, fill_step: int | None = None,
+                   explain_overflow: bool = True) -> str:
+    """One EM iteration in one line. A run whose map overflowed says so, and, with
+    ``explain_overflow`` (the calibration's first such line only), what that means for the
+    choice of the returned run."""
     at = "" if fill_step is None else f" from step {fill_step}"
-    full = (f", map full{at}: {dropped} births dropped (if EM does not converge, the run "
-            f"whose settings are returned is chosen among the later runs that dropped none, "
-            f"when there are any, else it is the one that dropped the fewest births)"
-            if dropped else "")
+    why = (" (if EM does not converge, the run whose settings are returned is chosen among "
+           "the later runs that dropped none, when there are any, else it is the one that "
+           "dropped the fewest births)" if explain_overflow else "")
+    full = f", map full{at}: {dropped} births dropped{why}" if dropped else ""
     return (f"calibration iteration {iteration}: log marginal likelihood {objective:.1f}{full}, "
             f"typical stds heading {typical[0]:.4g} rad, translation {typical[1]:.4g} m, "
             f"range {typical[2]:.4g} m, bearing {typical[3]:.4g} rad (largest change "
@@ -828,7 +832,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         change = np.max(np.abs(new_typical / typical[-1] - 1.0))
         if progress is not None:
             progress(_progress_line(done, objective[-1], new_typical, change, dropped[-1],
-                                    fill_steps[-1]))
+                                    fill_steps[-1],
+                                    explain_overflow=not any(dropped[:-1])))
         if change < tol:
             converged = True
             break

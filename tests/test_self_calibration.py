@@ -945,15 +945,32 @@ def test_unranked_warning_only_when_no_run_was_fair(objective, dropped, found, w
 
 
 def test_progress_line_names_an_overflowed_run():
-    """An EM run whose map overflowed says so on its progress line (if EM does not converge,
-    it is passed over when another run kept every birth); one that did not overflow says
-    nothing about it."""
+    """An EM run whose map overflowed says so on its progress line, the first such line
+    also what it means (if EM does not converge, the run is passed over when another run
+    kept every birth), later ones not again; one that did not overflow says nothing about
+    it."""
     typical = np.array([0.01, 0.02, 0.05, 0.004])
     full = sc._progress_line(3, -120.5, typical, 0.2, dropped=4321)
+    again = sc._progress_line(3, -120.5, typical, 0.2, dropped=4321, explain_overflow=False)
     plain = sc._progress_line(3, -120.5, typical, 0.2)
     assert "map full: 4321 births dropped" in full and "among the later runs" in full
+    assert "map full: 4321 births dropped," in again and "among the later runs" not in again
     assert "births dropped" not in plain and "map full" not in plain
     assert full.startswith("calibration iteration 3: log marginal likelihood -120.5")
+
+
+def test_only_the_first_overflowed_iteration_explains_the_overflow():
+    """40 trees in 16 slots: every EM run overflows; the calibration's progress explains
+    what a full map means once, on the first iteration's line."""
+    controls, obs, poses = _log()
+    config = FilterConfig(num_particles=8, max_landmarks=16, max_obs=10, association="known")
+    lines = []
+    sc.calibrate_params(config, jax.random.PRNGKey(0), controls, obs, poses[0], iterations=3,
+                        progress=lines.append, scale_search=False, patience=None)
+    iterations = [line for line in lines if line.startswith("calibration iteration")]
+    assert len(iterations) >= 2 and all("births dropped" in line for line in iterations)
+    assert ["among the later runs" in line for line in iterations] == (
+        [True] + [False] * (len(iterations) - 1))
 
 
 def test_dropped_births_recorded_when_the_map_overflows():
