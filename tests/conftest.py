@@ -40,31 +40,46 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 OPTIMISATION_TURNED_DOWN = os.environ.get("JAXSLAM_TEST_OPTIMIZED", "") in ("", "0")
 jax.config.update("jax_disable_most_optimizations", OPTIMISATION_TURNED_DOWN)
 # XLA:CPU's older emitters compile the filter's programs about 35 % faster than its fusion
-# emitters (a filter-loop and a proposal-rounds test: 40 s -> 26-28 s in one process, jax
-# 0.10.2), so the turned-down tier uses them too. XLA reads XLA_FLAGS when the CPU backend
-# starts (after this file runs); the ``jaxslam`` and study subprocesses that tests start
-# inherit them, and a test that sets its child's XLA_FLAGS starts from
+# emitters when optimisation is turned down (a filter-loop and a proposal-rounds test: 40 s
+# -> 26-28 s in one process, jax 0.10.2), so the default tier (``-m "not slow"``, turned
+# down) uses them (``pytest_configure``); with optimisation on they changed no program's
+# speed (docs/results.md, throughput). The slow tier and ``JAXSLAM_TEST_OPTIMIZED=1`` keep
+# XLA's defaults, as the slow tier's bit-identity checks were measured with them. The
+# ``jaxslam`` and study subprocesses that tests start inherit the flag (the CLI's run
+# optimised with the older emitters), and a test that sets its child's XLA_FLAGS starts from
 # ``JAXSLAM_TEST_XLA_FLAGS`` (the child then compiles what this process compiles).
-# XLA aborts the process on a flag it does not know, so a jaxlib that dropped this one gets
-# none (probed once, in a child, by the first test process; pytest-xdist's workers inherit
-# the answer).
+FASTER_COMPILING = "--xla_cpu_use_fusion_emitters=false"
 
 
 def _starts_with(flags: str) -> bool:
-    """Whether this jaxlib's CPU backend starts with ``flags`` added to XLA_FLAGS."""
+    """Whether this jaxlib's CPU backend starts with ``flags`` added to XLA_FLAGS (XLA
+    aborts the process on a flag it does not know; a probe that hangs counts as no)."""
     env = dict(os.environ, XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {flags}".strip())
-    probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices('cpu')"], env=env,
-                           capture_output=True, timeout=300)
+    try:
+        probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices('cpu')"],
+                               env=env, capture_output=True, timeout=300)
+    except subprocess.TimeoutExpired:
+        return False
     return probe.returncode == 0
 
 
-if "JAXSLAM_TEST_XLA_FLAGS" not in os.environ:
-    FASTER_COMPILING = "--xla_cpu_use_fusion_emitters=false"
-    os.environ["JAXSLAM_TEST_XLA_FLAGS"] = (
-        FASTER_COMPILING if OPTIMISATION_TURNED_DOWN and _starts_with(FASTER_COMPILING) else "")
-TEST_XLA_FLAGS = os.environ["JAXSLAM_TEST_XLA_FLAGS"]
-if TEST_XLA_FLAGS and TEST_XLA_FLAGS not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {TEST_XLA_FLAGS}".strip()
+def pytest_configure(config):
+    """Add ``FASTER_COMPILING`` to XLA_FLAGS for the default tier, before anything starts
+    XLA's CPU backend. The first test process keeps the user's own XLA_FLAGS and the probe's
+    answer in the environment, so pytest-xdist's workers (started after this) decide alike
+    and probe nothing; a user's own setting of the emitters wins."""
+    user = os.environ.setdefault("JAXSLAM_TEST_USER_XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))
+    wanted = (OPTIMISATION_TURNED_DOWN and config.option.markexpr == "not slow"
+              and "xla_cpu_use_fusion_emitters" not in user)
+    if wanted and "JAXSLAM_TEST_FLAG_PROBE" not in os.environ:
+        os.environ["JAXSLAM_TEST_FLAG_PROBE"] = "1" if _starts_with(FASTER_COMPILING) else "0"
+    used = wanted and os.environ["JAXSLAM_TEST_FLAG_PROBE"] == "1"
+    os.environ["JAXSLAM_TEST_XLA_FLAGS"] = FASTER_COMPILING if used else ""
+    os.environ["XLA_FLAGS"] = f"{user} {os.environ['JAXSLAM_TEST_XLA_FLAGS']}".strip()
+
+
+def pytest_report_header(config):
+    return f"XLA_FLAGS added by the tests: {os.environ['JAXSLAM_TEST_XLA_FLAGS'] or 'none'}"
 
 
 @pytest.fixture(scope="session")

@@ -613,6 +613,14 @@ def _rows(trace, steps):
     return jax.tree.map(lambda leaf: np.asarray(leaf)[steps], trace)
 
 
+def _close_with_a_looser_ess(actual, expected):
+    """Two runs' traces equal to float32 rounding: the ESS to rtol 1e-4, every other leaf to
+    1e-5 (the measured values are where this is called)."""
+    chex.assert_trees_all_close(actual._replace(ess=None), expected._replace(ess=None),
+                                rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(actual.ess, expected.ess, rtol=1e-4, atol=1e-5)
+
+
 def test_run_filter_stops_at_the_first_dropped_birth():
     """``stop_at_dropped_birth``: the rows up to and including the first step that dropped a
     birth are bit-identical to the whole run's (one compiled program, same key), every later
@@ -621,7 +629,8 @@ def test_run_filter_stops_at_the_first_dropped_birth():
     length: the same step, so bit-identical on this CPU; another backend or XLA version may
     fuse the two programs differently, and then this check would need a tolerance).
     A run that never drops a birth is the same with the flag on or off, and equal to
-    ``scan_filter`` without the flag (no cond). Bad flags are refused."""
+    ``scan_filter`` without the flag (no cond) up to float32 rounding (stated below). Bad
+    flags are refused."""
     from jaxslam.filter import make_filter, scan_filter
 
     controls, obs, poses = _log()
@@ -649,8 +658,9 @@ def test_run_filter_stops_at_the_first_dropped_birth():
     # and the resampling are identical, their poses and the sums over particles (weighted
     # mean pose, ESS, evidence) agree to float32 rounding of differently fused arithmetic
     # (bit-identical with XLA:CPU's fusion emitters; with its older emitters, which the
-    # default test tier uses, 5e-7 relative in the poses and 1.5e-5 in the ESS, whose
-    # squared normalised weights magnify the log-weights' rounding; 1e-4).
+    # default test tier uses, 5e-7 relative in the poses, 9e-7 in the evidence and 1.5e-5
+    # in the ESS, whose squared normalised weights magnify the log-weights' rounding: 1e-4
+    # for the ESS, 1e-5 for the rest).
     _, off = run_filter(CONFIG, key, params, controls, obs, poses[0], record_lineage=True)
     _, on = run_filter(CONFIG, key, params, controls, obs, poses[0], record_lineage=True,
                        stop_at_dropped_birth=True)
@@ -660,10 +670,10 @@ def test_run_filter_stops_at_the_first_dropped_birth():
     chex.assert_trees_all_equal(
         (plain.lineage._replace(pose=None), plain.resampled),
         (off.lineage._replace(pose=None), off.resampled))
-    chex.assert_trees_all_close(plain, off, rtol=1e-4, atol=1e-5)
+    _close_with_a_looser_ess(plain, off)
     # Under vmap the cond becomes a select of both branches: the same rows as each run alone
-    # (float32 rounding of the batched program; the ESS's 2.2e-5 relative with the older
-    # emitters, as above: 1e-4).
+    # (float32 rounding of the batched program; the ESS 2.2e-5 relative with the older
+    # emitters: as above).
     keys = jax.random.split(key, 2)
     batched = jax.jit(jax.vmap(lambda k: scan_filter(
         small, k, make_filter(small).init(poses[0]), params, controls, obs,
@@ -671,8 +681,7 @@ def test_run_filter_stops_at_the_first_dropped_birth():
     for run, k in enumerate(keys):
         _, alone = run_filter(small, k, params, controls, obs, poses[0],
                               stop_at_dropped_birth=True)
-        chex.assert_trees_all_close(jax.tree.map(lambda a, run=run: a[run], batched), alone,
-                                    rtol=1e-4, atol=1e-5)
+        _close_with_a_looser_ess(jax.tree.map(lambda a, run=run: a[run], batched), alone)
     for bad in (1, "yes", None, np.array([True])):
         with pytest.raises(ValueError, match="stop_at_dropped_birth must be True or False"):
             run_filter(small, key, params, controls, obs, poses[0], stop_at_dropped_birth=bad)
