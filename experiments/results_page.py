@@ -3,10 +3,18 @@
 Copies results/<study>/table.md (or results.md) and its PNGs into docs/results/<study>/ so the
 page renders from a clean checkout, and writes the command that regenerates each study.
 
-Run:  python experiments/results_page.py
+Run:  python experiments/results_page.py [--force]
+
+docs/results.md also holds text written into it by hand, under the generated sections (the
+Victoria Park history, for one) and in no source this script reads. A rebuild that would
+drop any such line stops and names the sections and their line counts, and writes nothing;
+``--force`` rebuilds anyway. Keep such text in a page under docs/results/ (each ``*.md``
+there is appended whole) to make it survive rebuilds.
 """
+import argparse
 import pathlib
 import shutil
+import sys
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 STUDIES = [
@@ -99,38 +107,75 @@ FINDINGS = {
 }
 
 
-def main():
-    docs = ROOT / "docs"
+def build_page(root: pathlib.Path) -> tuple[str, list]:
+    """(the text of docs/results.md, the (source, target) PNG copies it links) from the
+    studies' results under ``root``/results and the hand-written pages under
+    ``root``/docs/results."""
+    docs = root / "docs"
+    copies = []
     lines = ["# Results", "",
              "Every table and plot below was produced on the project's 2-core CPU machine by the "
              "command shown (results land in `results/<study>/`; this page is rebuilt by "
              "`python experiments/results_page.py`). A study that has not been run yet says so.",
              ""]
     for study, command, about in STUDIES:
-        source = ROOT / "results" / study
+        source = root / "results" / study
         lines += [f"## {study}", "", about, "", f"Regenerate: `{command}`", ""]
         table = next((source / name for name in ("table.md", "summary.md", "results.md")
                       if (source / name).exists()), None)
         if table is None:
             lines += ["_Not run in the current results._", ""]
             continue
-        target = docs / "results" / study
-        target.mkdir(parents=True, exist_ok=True)
         body = table.read_text().split("\n")
         body = [line for line in body if not line.startswith("# ")]
         lines += body + [""]
         if study in FINDINGS:
             lines += [FINDINGS[study], ""]
         for png in sorted(source.glob("*.png")):
-            shutil.copy(png, target / png.name)
+            copies.append((png, docs / "results" / study / png.name))
             lines += [f"![{study} {png.stem}](results/{study}/{png.name})", ""]
     # Hand-written sections (experiments whose output is a few lines of text, each file
     # naming its command) follow the generated ones.
     for page in sorted((docs / "results").glob("*.md")):
         lines += page.read_text().split("\n") + [""]
-    (docs / "results.md").write_text("\n".join(lines))
-    print(f"wrote {docs / 'results.md'}")
+    return "\n".join(lines), copies
+
+
+def lost_lines(old: str, new: str) -> dict:
+    """{section: count} of the non-empty lines of ``old`` that ``new`` no longer holds,
+    by the ``## `` section of ``old`` they sit in."""
+    kept = set(new.split("\n"))
+    lost, section = {}, "(before the first section)"
+    for line in old.split("\n"):
+        if line.startswith("## "):
+            section = line[3:]
+        if line.strip() and line not in kept:
+            lost[section] = lost.get(section, 0) + 1
+    return lost
+
+
+def main(argv=None, root: pathlib.Path = ROOT) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--force", action="store_true",
+                        help="rebuild even if lines written into docs/results.md by hand are lost")
+    args = parser.parse_args(argv)
+    text, copies = build_page(root)
+    page = root / "docs" / "results.md"
+    lost = lost_lines(page.read_text(), text) if page.exists() else {}
+    if lost and not args.force:
+        sections = ", ".join(f"{name} ({count})" for name, count in lost.items())
+        print(f"results_page: not rebuilt. {sum(lost.values())} lines of {page} are in no "
+              f"source this script reads (written there by hand, or from results/ this "
+              f"checkout lacks), by section: {sections}. Move them into a page under "
+              f"docs/results/, or rerun with --force to drop them.", file=sys.stderr)
+        return 1
+    for png, target in copies:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(png, target)
+    page.write_text(text)
+    print(f"wrote {page}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
