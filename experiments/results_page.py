@@ -6,10 +6,13 @@ page renders from a clean checkout, and writes the command that regenerates each
 Run:  python experiments/results_page.py [--force]
 
 docs/results.md also holds text written into it by hand, under the generated sections (the
-Victoria Park history, for one) and in no source this script reads. A rebuild that would
-drop any such line stops and names the sections and their line counts, and writes nothing;
-``--force`` rebuilds anyway. Keep such text in a page under docs/results/ (each ``*.md``
-there is appended whole) to make it survive rebuilds.
+Victoria Park history, for one) and in no source this script reads. A study with no results
+in this checkout (``results/`` is not in git) keeps its section as docs/results.md has it,
+from its ``## study`` line up to the next study's or the first line of a page under
+docs/results/. A rebuild that would still drop a line (a study run again, whose section
+had text added by hand) stops, names the sections and their line counts, and writes
+nothing; ``--force`` rebuilds anyway. Keep such text in a page under docs/results/ (each
+``*.md`` there is appended whole).
 """
 import argparse
 import pathlib
@@ -107,11 +110,30 @@ FINDINGS = {
 }
 
 
-def build_page(root: pathlib.Path) -> tuple[str, list]:
+def earlier_sections(old: str, page_starts: set) -> dict:
+    """{study: its lines} in an earlier docs/results.md: from its ``## study`` line up to the
+    next study's or to a line that starts a hand-written page (``page_starts``)."""
+    headers = {f"## {study}": study for study, _, _ in STUDIES}
+    sections, current = {}, None
+    for line in old.split("\n"):
+        if line in headers:
+            current = headers[line]
+            sections[current] = []
+        elif line in page_starts:
+            current = None
+        if current is not None:
+            sections[current].append(line)
+    return sections
+
+
+def build_page(root: pathlib.Path, old: str = "") -> tuple[str, list]:
     """(the text of docs/results.md, the (source, target) PNG copies it links) from the
     studies' results under ``root``/results and the hand-written pages under
-    ``root``/docs/results."""
+    ``root``/docs/results; a study without results keeps its section of ``old`` (the
+    current docs/results.md), if it has one."""
     docs = root / "docs"
+    pages = [page.read_text().split("\n") for page in sorted((docs / "results").glob("*.md"))]
+    kept = earlier_sections(old, {page[0] for page in pages if page[0].strip()})
     copies = []
     lines = ["# Results", "",
              "Every table and plot below was produced on the project's 2-core CPU machine by the "
@@ -120,9 +142,12 @@ def build_page(root: pathlib.Path) -> tuple[str, list]:
              ""]
     for study, command, about in STUDIES:
         source = root / "results" / study
-        lines += [f"## {study}", "", about, "", f"Regenerate: `{command}`", ""]
         table = next((source / name for name in ("table.md", "summary.md", "results.md")
                       if (source / name).exists()), None)
+        if table is None and study in kept:
+            lines += kept[study]
+            continue
+        lines += [f"## {study}", "", about, "", f"Regenerate: `{command}`", ""]
         if table is None:
             lines += ["_Not run in the current results._", ""]
             continue
@@ -136,8 +161,8 @@ def build_page(root: pathlib.Path) -> tuple[str, list]:
             lines += [f"![{study} {png.stem}](results/{study}/{png.name})", ""]
     # Hand-written sections (experiments whose output is a few lines of text, each file
     # naming its command) follow the generated ones.
-    for page in sorted((docs / "results").glob("*.md")):
-        lines += page.read_text().split("\n") + [""]
+    for page in pages:
+        lines += page + [""]
     return "\n".join(lines), copies
 
 
@@ -159,9 +184,10 @@ def main(argv=None, root: pathlib.Path = ROOT) -> int:
     parser.add_argument("--force", action="store_true",
                         help="rebuild even if lines written into docs/results.md by hand are lost")
     args = parser.parse_args(argv)
-    text, copies = build_page(root)
     page = root / "docs" / "results.md"
-    lost = lost_lines(page.read_text(), text) if page.exists() else {}
+    old = page.read_text() if page.exists() else ""
+    text, copies = build_page(root, old)
+    lost = lost_lines(old, text)
     if lost and not args.force:
         sections = ", ".join(f"{name} ({count})" for name, count in lost.items())
         print(f"results_page: not rebuilt. {sum(lost.values())} lines of {page} are in no "

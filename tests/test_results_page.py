@@ -54,3 +54,23 @@ def test_lost_lines_counts_by_section(results_page):
     assert results_page.lost_lines(old, new) == {"a": 1, "b": 2}
     assert results_page.lost_lines(old, old) == {}
     assert results_page.lost_lines("", new) == {}
+
+
+def test_a_study_without_results_keeps_its_section(results_page, tmp_path):
+    """table3 has no results in this checkout: its section of the current page (up to the
+    next study or to a page's first line) comes back verbatim, hand-written lines and all,
+    and the page that followed it is not taken into it."""
+    _tree(tmp_path)
+    page = tmp_path / "docs" / "results.md"
+    results_page.main([], root=tmp_path)
+    section = ["## table3", "", "Table 3.", "", "| old | table |", "", "A note by hand.", ""]
+    built = page.read_text()
+    start = built.index("## table3")
+    end = built.index("## mixture_proposal")
+    page.write_text(built[:start] + "\n".join(section) + "\n" + built[end:])
+    edited = page.read_text()
+    assert results_page.main([], root=tmp_path) == 0
+    assert page.read_text() == edited
+    sections = results_page.earlier_sections(edited, {"## notes"})
+    assert sections["table3"] == section
+    assert "A hand-written page." not in "\n".join(sections["victoria_park"])
