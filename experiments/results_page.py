@@ -190,7 +190,9 @@ def main(argv=None, root: pathlib.Path = ROOT) -> int:
     lost = lost_lines(old, text)
     if lost and not args.force:
         sections = ", ".join(f"{name} ({count})" for name, count in lost.items())
-        print(f"results_page: not rebuilt. {sum(lost.values())} lines of {page} are in no "
+        count = sum(lost.values())
+        print(f"results_page: not rebuilt. {count} line{'' if count == 1 else 's'} of {page} "
+              f"{'is' if count == 1 else 'are'} in no "
               f"source this script reads (written there by hand, or from results/ this "
               f"checkout lacks), by section: {sections}. Move them into a page under "
               f"docs/results/, or rerun with --force to drop them.", file=sys.stderr)

@@ -41,7 +41,7 @@ def test_rebuild_keeps_hand_written_lines_unless_forced(results_page, tmp_path, 
     capsys.readouterr()
     assert results_page.main([], root=tmp_path) == 1
     err = capsys.readouterr().err
-    assert "not rebuilt. 1 lines" in err and "by section: demo (1)" in err and "--force" in err
+    assert "not rebuilt. 1 line of" in err and "is in no source" in err and "by section: demo (1)" in err and "--force" in err
     assert page.read_text() == edited  # nothing written, nothing copied
     assert not (tmp_path / "docs" / "results" / "demo" / "final.png").exists()
     assert results_page.main(["--force"], root=tmp_path) == 0
