@@ -38,7 +38,7 @@ from jaxslam.metrics import ate_rmse, final_pose_error
 from jaxslam.types import FilterConfig, default_params
 from sims import robot as rb
 from sims.forest import random_forest, world_from_forest
-from sims.scenario import analytic_observations, lidar_observations
+from sims.scenario import analytic_observations, lidar_observations, with_start_scan
 
 TABLE_1 = np.array([[0.0, 0.06, 0.0002], [0.02, 0.006, 0.00003], [0.0, 0.06, 0.0003]])
 TABLE_2 = np.array([[0.005, 0.0], [0.0005, 0.0]])
@@ -67,6 +67,10 @@ def parse_args():
                         help="robots driven through a forest for the filter comparison (0: skip)")
     parser.add_argument("--filter-intervals", type=int, default=200)
     parser.add_argument("--particles", type=int, default=50)
+    parser.add_argument("--first-scan", action=argparse.BooleanOptionalAction, default=True,
+                        help="the filter also gets a scan at the start pose, before the first "
+                             "move (a zero move); --no-first-scan: the first scan comes after "
+                             "the first move, as before 2026-12-06")
     parser.add_argument("--out", default="results/noise_model")
     return parser.parse_args()
 
@@ -141,7 +145,12 @@ def filter_comparison(args, fitted_params, max_obs=16, max_landmarks=256):
     R robots (new random commands) drive T intervals at the same wheel friction; controls are
     their encoder odometry moves (the filter's min_translation); observations are analytic
     range-bearing to a jittered-grid forest with Table 2 noise at the true poses, so the two
-    conditions differ only in the motion-noise coefficients. Returns per-run metrics.
+    conditions differ only in the motion-noise coefficients. With ``args.first_scan`` the
+    robot also scans at rest at its start pose (``sims.scenario.with_start_scan``): the MJX
+    robot's first move starts from rest and can slip by 0.1 rad, and without that scan the
+    map would be built from the pose after it, tilted by that error for the whole run.
+    Final error and ATE are over the poses after each move (T of them), either way.
+    Returns per-run metrics.
     """
     spec = rb.RobotSpec(max_wheel_acceleration=args.wheel_accel)
     robot = rb.make_robot(spec)
@@ -159,21 +168,28 @@ def filter_comparison(args, fitted_params, max_obs=16, max_landmarks=256):
     observe = jax.vmap(jax.vmap(lambda k, p: analytic_observations(
         k, p, centres, radii, hand_set, max_obs)))
     observations = observe(obs_keys, log.true_poses[:, 1:])
+    controls = log.odometry_moves
+    if args.first_scan:  # a scan at rest at the start pose anchors the map (with_start_scan)
+        start_keys = jax.random.split(jax.random.fold_in(key_obs, 1), args.filter_runs)
+        start_scans = jax.tree.map(lambda a: a[:, 0], observe(start_keys[:, None],
+                                                               log.true_poses[:, :1]))
+        controls, observations = with_start_scan(controls, observations, start_scans)
     config = FilterConfig(num_particles=args.particles, max_landmarks=max_landmarks,
                           max_obs=max_obs)
+    skip = int(args.first_scan)  # trace row of the pose after the first move
 
     def one_run(params, run, controls, obs, truth):
         state, trace = run_filter(config, jax.random.fold_in(key_filter, run), params,
                                   controls, obs, truth[0])
         return (final_pose_error(trace.mean_pose[-1], truth[-1]),
-                ate_rmse(trace.mean_pose, truth[1:]))
+                ate_rmse(trace.mean_pose[skip:], truth[1:]))
 
     runs = jnp.arange(args.filter_runs)
     batched = jax.jit(jax.vmap(one_run, in_axes=(None, 0, 0, 0, 0)))  # one compile for both
     results = {}
     for name, params in (("hand-set (Table 1)", hand_set), ("fitted", fitted_params)):
         start = time.perf_counter()
-        final, ate = batched(params, runs, log.odometry_moves, observations, log.true_poses)
+        final, ate = batched(params, runs, controls, observations, log.true_poses)
         results[name] = dict(final_pose_error=np.asarray(final).tolist(),
                              ate_rmse=np.asarray(ate).tolist(),
                              seconds=time.perf_counter() - start)
@@ -187,10 +203,9 @@ def filter_comparison(args, fitted_params, max_obs=16, max_landmarks=256):
     for run in range(args.filter_runs):
         obs = jax.tree.map(lambda a: a[run], observations)
         params, info = calibrate_params(config, jax.random.fold_in(key_filter, run),
-                                        log.odometry_moves[run], obs, log.true_poses[run, 0],
+                                        controls[run], obs, log.true_poses[run, 0],
                                         starting_params(config))
-        run_final, run_ate = single(params, run, log.odometry_moves[run], obs,
-                                    log.true_poses[run])
+        run_final, run_ate = single(params, run, controls[run], obs, log.true_poses[run])
         final.append(float(run_final))
         ate.append(float(run_ate))
         verdicts.append(info.verdict)
@@ -210,14 +225,23 @@ def config_proposal() -> str:
     return FilterConfig().proposal
 
 
+def config_matching() -> str:
+    """The association and boundary of the comparison's ``FilterConfig`` (library defaults)."""
+    config = FilterConfig()
+    return f"{config.association} matching, boundary {config.boundary}"
+
+
 def filter_markdown(results, args) -> str:
     lines = ["", "## Filter accuracy with hand-set versus fitted motion noise", "",
              f"{args.filter_runs} MJX robots x {args.filter_intervals} intervals of "
              f"{args.interval} s (wheel friction {args.friction}, acceleration limit "
              f"{args.wheel_accel} rad/s^2); controls = encoder odometry; "
              "observations = analytic range-bearing (Table 2 noise) to a jittered-grid forest "
-             f"(6 m spacing, 20 m range); FastSLAM P={args.particles}, stable matching, loose "
-             f"boundary, proposal {config_proposal()}. Hand-set and fitted differ only in the "
+             f"(6 m spacing, 20 m range), "
+             + ("plus a scan at rest at the start pose behind a zero move (`with_start_scan`); "
+                if args.first_scan else "the first scan after the first move; ")
+             + f"FastSLAM P={args.particles}, {config_matching()}, "
+             f"proposal {config_proposal()}. Hand-set and fitted differ only in the "
              "motion-noise coefficients (fitted against the simulator's truth); 'calibrated "
              "from the log' is told nothing (``jaxslam.calibrate_params`` on each robot's "
              "odometry and observations alone).", "",
@@ -244,7 +268,8 @@ def table_markdown(motion, observation, args, counts, seconds) -> str:
              f"--robots {args.robots} --intervals {args.intervals} --friction {args.friction} "
              f"--wheel-accel {args.wheel_accel} --poses {args.poses} --method {args.method} "
              f"--beam-noise {args.beam_noise[0]} {args.beam_noise[1]} "
-             f"--filter-runs {args.filter_runs} --out {args.out}`", "",
+             f"--filter-runs {args.filter_runs}"
+             + ("" if args.first_scan else " --no-first-scan") + f" --out {args.out}`", "",
              f"Motion data: {counts['motion_samples']} moves of {args.interval} s "
              f"({counts['motion_valid']} unambiguous) from {args.robots} MJX robots "
              f"(wheel friction {args.friction}, wheel acceleration limit {args.wheel_accel} "

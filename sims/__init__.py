@@ -69,6 +69,7 @@ _PUBLIC = {
     "scenario_config": "sims.config",
     "Scenario": "sims.scenario",
     "analytic_observations": "sims.scenario",
+    "with_start_scan": "sims.scenario",
     "build_scenario": "sims.scenario",
     "default_scenario": "sims.scenario",
 }

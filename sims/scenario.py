@@ -4,7 +4,8 @@ Run i draws its noise from ``jax.random.fold_in(key, i)``, so a run does not dep
 many runs are built together. All runs share the forest and the true path; they differ in
 odometry noise and observation noise. Time convention: ``controls[:, t]`` moves the robot
 from ``poses[:, t]`` to ``poses[:, t + 1]`` and ``observations[:, t]`` is taken at
-``poses[:, t + 1]`` (predict, then update).
+``poses[:, t + 1]`` (predict, then update); ``with_start_scan`` adds a scan at the start pose
+(behind a zero move), so that the map is anchored at the known start.
 
 Observation sources:
   analytic  exact range-bearing to every trunk centre with min_range < range <= max_range
@@ -131,6 +132,40 @@ def simulate_run(key, moves, poses, params: Params, observe, sequential: bool = 
     if sequential:
         return controls, jax.lax.map(lambda args: observe(*args), inputs)
     return controls, jax.vmap(observe)(*inputs)
+
+
+def with_start_scan(controls, observations: Observations, start_observations: Observations):
+    """The log of a robot that scans once at rest before its first move.
+
+    Row 0 becomes a zero move (rot1, trans, rot2) = 0 (the encoders read nothing) followed by
+    ``start_observations``, a scan taken at the start pose; rows 1..T are the given ones. So
+    ``controls[..., t]`` now ends at ``poses[..., t]`` and the filter's map is anchored at the
+    known start pose. Without that scan the first landmarks are placed from the pose after
+    the first move, and that move's error (a slip burst of the MJX robot can turn it by
+    0.1 rad) tilts the whole map in a way no later scan can reveal.
+
+    Args:
+      controls: (..., T, 3); observations: leaves (..., T, K, ...); start_observations:
+        leaves (..., K, ...), the same leading axes without T.
+    Returns (controls (..., T+1, 3), observations with leaves (..., T+1, K, ...)).
+    """
+    time_axis = jnp.ndim(controls) - 2
+    if time_axis < 0 or jnp.shape(controls)[-1] != 3:
+        raise ValueError(f"with_start_scan: controls must have shape (..., T, 3); got "
+                         f"{jnp.shape(controls)}")
+    start_z = jnp.shape(start_observations.z)
+    rest_z = jnp.shape(observations.z)
+    if start_z != rest_z[:time_axis] + rest_z[time_axis + 1:]:
+        raise ValueError(f"with_start_scan: start_observations.z has shape {start_z}; "
+                         f"expected {rest_z[:time_axis] + rest_z[time_axis + 1:]} (the "
+                         f"observations' {rest_z} without the time axis {time_axis})")
+    shape = list(jnp.shape(controls))
+    shape[time_axis] = 1
+    zero_move = jnp.zeros(shape, jnp.result_type(controls))
+    return (jnp.concatenate([zero_move, controls], axis=time_axis),
+            jax.tree.map(lambda start, rest: jnp.concatenate(
+                [jnp.expand_dims(start, time_axis), rest], axis=time_axis),
+                start_observations, observations))
 
 
 def build_scenario(key, forest: Forest, path, num_runs: int, *, source: str = "analytic",
