@@ -14,6 +14,12 @@ noise model. Per run and step:
   observations  analytic range-bearing to trunk centres along that true path, with Table 2
                 noise (``sims.scenario.analytic_observations``, as in the kinematic scenario).
 
+The robot scans once at rest before it drives (``sims.scenario.with_start_scan``): row 0 is a
+zero move and a scan at the start pose, and the truth repeats the start pose for it, so a run
+has T+1 filter steps (controls (T+1, 3), truth (T+2, 3)). The first interval starts from rest
+and can slip by 0.1 rad; without the start scan the filter's map would inherit that error for
+the whole run (docs/results.md, noise_model).
+
 The scenario's ``path`` only sets the start pose, and ``step_length`` the top speed
 (step_length per interval); the forest keeps clear of the designed path, not of the robot's,
 and the robot does not collide with trunks (its physics is a ground plane alone). Forest and
@@ -76,10 +82,11 @@ def place_path(start, robot_poses):
 @functools.lru_cache(maxsize=8)
 def _robot_simulator(settings: ScenarioConfig, seed: int, max_obs: int):
     """jit(group of W robot runs): (run_ids (W,), start (W, 3), centres (W, N, 2),
-    radii (W, N)) -> (controls (W, T, 3), observations (W, T, K, ...), tree_seen (W, N),
-    truth_pose (W, T+1, 3)), all float32 poses. Cached: one MJX model and compile per study."""
+    radii (W, N)) -> (controls (W, T+1, 3), observations (W, T+1, K, ...), tree_seen (W, N),
+    truth_pose (W, T+2, 3)), all float32 poses (row 0: the start scan, module docstring).
+    Cached: one MJX model and compile per study."""
     from sims import robot as robot_lib
-    from sims.scenario import analytic_observations
+    from sims.scenario import analytic_observations, with_start_scan
 
     robot = robot_lib.make_robot(robot_spec())
     dtype = robot.model.geom_friction.dtype  # the physics' float type (float64 under x64)
@@ -90,12 +97,18 @@ def _robot_simulator(settings: ScenarioConfig, seed: int, max_obs: int):
         run_key = jax.random.fold_in(jax.random.PRNGKey(seed), run_id)
         return jax.random.split(jax.random.fold_in(run_key, 0))
 
-    def observe(key, start, robot_poses, centres, radii):
+    def scan(key, pose, centres, radii):
+        return analytic_observations(key, pose, centres, radii, params, max_obs)
+
+    def observe(key, start, robot_poses, odometry_moves, centres, radii):
         truth = place_path(start, robot_poses.astype(jnp.float32))
-        observations = jax.vmap(lambda k, pose: analytic_observations(
-            k, pose, centres, radii, params, max_obs))(
-                jax.random.split(key, settings.num_steps), truth[1:])
-        return observations, observed_trees(observations, centres.shape[0]), truth
+        observations = jax.vmap(scan, in_axes=(0, 0, None, None))(
+            jax.random.split(key, settings.num_steps), truth[1:], centres, radii)
+        controls, observations = with_start_scan(
+            odometry_moves.astype(jnp.float32), observations,
+            scan(jax.random.fold_in(key, settings.num_steps), truth[0], centres, radii))
+        truth = jnp.concatenate([truth[:1], truth])  # the zero move stays at the start
+        return controls, observations, observed_trees(observations, centres.shape[0]), truth
 
     def simulate(run_ids, start, centres, radii):
         keys = jax.vmap(run_keys)(run_ids)
@@ -103,9 +116,8 @@ def _robot_simulator(settings: ScenarioConfig, seed: int, max_obs: int):
             key, settings.num_steps, robot.spec, top_speed, dtype))(keys[:, 0])
         log = robot_lib.simulate_batch(robot, commands, friction, STEP_SECONDS,
                                        float(params.min_translation))
-        observations, seen, truth = jax.vmap(observe)(keys[:, 1], start, log.true_poses,
-                                                      centres, radii)
-        return log.odometry_moves.astype(jnp.float32), observations, seen, truth
+        return jax.vmap(observe)(keys[:, 1], start, log.true_poses, log.odometry_moves,
+                                 centres, radii)
 
     return jax.jit(simulate)
 
@@ -113,8 +125,9 @@ def _robot_simulator(settings: ScenarioConfig, seed: int, max_obs: int):
 def robot_batch(config: StudyConfig, run_ids: np.ndarray, width: int) -> RunBatch:
     """The runs ``run_ids`` (R,) driven by the MJX wheeled robot, in groups of ``width``.
 
-    Returns a ``RunBatch`` whose leaves are all per run: controls (R, T, 3), observations
-    (R, T, K, ...), truth_pose (R, T+1, 3), tree_centres (R, N, 2), tree_radii (R, N),
+    Returns a ``RunBatch`` whose leaves are all per run: controls (R, T+1, 3), observations
+    (R, T+1, K, ...), truth_pose (R, T+2, 3) (row 0: the start scan, module docstring),
+    tree_centres (R, N, 2), tree_radii (R, N),
     tree_seen (R, N) (trees observed at least once). Raises ``SimulatorNotInstalled`` (an
     ImportError naming the install command) without MuJoCo.
     """

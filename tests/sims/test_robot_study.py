@@ -67,7 +67,10 @@ def test_robot_odometry_is_encoder_dead_reckoning_not_eq1_noise(batch):
     config = robot_config()
     min_translation = float(simulation_params(config.scenario).min_translation)
     truth = batch.truth_pose
-    assert truth.shape == (3, 9, 3) and batch.controls.shape == (3, 8, 3)
+    # 8 intervals after the start scan's zero move (row 0), which repeats the start pose.
+    assert truth.shape == (3, 10, 3) and batch.controls.shape == (3, 9, 3)
+    np.testing.assert_array_equal(batch.controls[:, 0], 0.0)
+    np.testing.assert_array_equal(truth[:, 0], truth[:, 1])
     exact = np.asarray(odometry_from_poses(truth[:, :-1], truth[:, 1:], min_translation))
     error = batch.controls - exact
     error[..., [0, 2]] = np.angle(np.exp(1j * error[..., [0, 2]]))
@@ -78,10 +81,11 @@ def test_robot_odometry_is_encoder_dead_reckoning_not_eq1_noise(batch):
     np.testing.assert_allclose(truth[:, 0], np.broadcast_to(start, (3, 3)), atol=1e-5)
     assert not np.array_equal(batch.controls[0], batch.controls[1])
     assert np.all(np.sum(np.abs(batch.controls[..., 1]), axis=1) > 0.1)
-    # The observations are the analytic ones: each carries a tree id and a true range.
+    # The observations are the analytic ones: each carries a tree id and a true range,
+    # row t taken at truth[t + 1] (row 0, the start scan, at the start pose).
     valid = batch.observations.valid
     ids = batch.observations.landmark_id
-    assert valid.any() and np.all(ids[valid] >= 0)
+    assert valid.any() and valid[:, 0].any() and np.all(ids[valid] >= 0)
     gap = batch.tree_centres[0][ids[0]] - truth[0, 1:, None, :2]
     true_range = np.hypot(gap[..., 0], gap[..., 1])
     # Table 2 range noise: 0.005 m/m at 20 m is 0.1 m; 0.6 m is six of those stds.
