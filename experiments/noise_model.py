@@ -70,7 +70,7 @@ def parse_args():
     parser.add_argument("--first-scan", action=argparse.BooleanOptionalAction, default=True,
                         help="the filter also gets a scan at the start pose, before the first "
                              "move (a zero move); --no-first-scan: the first scan comes after "
-                             "the first move, as before 2026-12-06")
+                             "the first move")
     parser.add_argument("--out", default="results/noise_model")
     return parser.parse_args()
 
@@ -170,7 +170,9 @@ def filter_comparison(args, fitted_params, max_obs=16, max_landmarks=256):
     observations = observe(obs_keys, log.true_poses[:, 1:])
     controls = log.odometry_moves
     if args.first_scan:  # a scan at rest at the start pose anchors the map (with_start_scan)
-        start_keys = jax.random.split(jax.random.fold_in(key_obs, 1), args.filter_runs)
+        # fold_in(k, n) is split(k, n + 1)[n]: a key after the R T step keys, never used.
+        start_keys = jax.random.split(jax.random.fold_in(
+            key_obs, args.filter_runs * args.filter_intervals), args.filter_runs)
         start_scans = jax.tree.map(lambda a: a[:, 0], observe(start_keys[:, None],
                                                                log.true_poses[:, :1]))
         controls, observations = with_start_scan(controls, observations, start_scans)

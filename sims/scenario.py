@@ -155,6 +155,9 @@ def with_start_scan(controls, observations: Observations, start_observations: Ob
                          f"{jnp.shape(controls)}")
     start_z = jnp.shape(start_observations.z)
     rest_z = jnp.shape(observations.z)
+    if rest_z[:time_axis + 1] != jnp.shape(controls)[:-1]:
+        raise ValueError(f"with_start_scan: observations.z has shape {rest_z}; its leading axes "
+                         f"must be the controls' {jnp.shape(controls)[:-1]} (..., T)")
     if start_z != rest_z[:time_axis] + rest_z[time_axis + 1:]:
         raise ValueError(f"with_start_scan: start_observations.z has shape {start_z}; "
                          f"expected {rest_z[:time_axis] + rest_z[time_axis + 1:]} (the "

@@ -92,6 +92,32 @@ def test_robot_odometry_is_encoder_dead_reckoning_not_eq1_noise(batch):
     assert np.max(np.abs(batch.observations.z[0, ..., 0] - true_range)[valid[0]]) < 0.6
 
 
+def test_robot_steps_after_the_start_scan_keep_their_draws(batch):
+    """Row t >= 1 is the scan at truth[t + 1] drawn with split(obs_key, T)[t - 1], as before
+    the start scan existed; row 0 is the scan at the start pose with fold_in(obs_key, T).
+    Recomputed here from the run keys of the module docstring (same float32 ops: exact)."""
+    from sims.batch import simulation_params
+    from sims.scenario import analytic_observations
+
+    config = robot_config()
+    params = simulation_params(config.scenario)
+    num_steps, max_obs = config.scenario.num_steps, config.filter.max_obs
+    for run in range(3):
+        run_key = jax.random.fold_in(jax.random.PRNGKey(config.seed), run)
+        obs_key = jax.random.split(jax.random.fold_in(run_key, 0))[1]
+        centres, radii = batch.tree_centres[run], batch.tree_radii[run]
+        truth = batch.truth_pose[run]
+        step_keys = jax.random.split(obs_key, num_steps)
+        keys_and_poses = [(jax.random.fold_in(obs_key, num_steps), truth[0])] + [
+            (step_keys[t - 1], truth[t + 1]) for t in range(1, num_steps + 1)]
+        for t, (key, pose) in enumerate(keys_and_poses):
+            want = analytic_observations(key, pose, centres, radii, params, max_obs)
+            for name in ("z", "valid", "landmark_id"):
+                np.testing.assert_array_equal(
+                    getattr(batch.observations, name)[run, t], np.asarray(getattr(want, name)),
+                    err_msg=f"run {run} row {t} {name}")
+
+
 def test_robot_runs_do_not_depend_on_the_runs_asked_together(batch):
     from sims.batch import scenario_batch
 

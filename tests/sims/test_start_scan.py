@@ -40,6 +40,7 @@ def test_matches_the_numpy_reference(lead, jit):
     got_controls, got_obs = function(controls, observations, start)
     want_controls, want_obs = _reference(controls, observations, start)
     assert got_controls.shape == lead + (num_steps + 1, 3)
+    assert got_controls.dtype == controls.dtype
     np.testing.assert_array_equal(np.asarray(got_controls), want_controls.astype(np.float32))
     for name in Observations._fields:
         got, want = np.asarray(getattr(got_obs, name)), getattr(want_obs, name)
@@ -73,6 +74,10 @@ def test_bad_shapes_are_refused():
         sims.with_start_scan(jnp.zeros((5, 2)), observations, _observations(rng, ()))
     with pytest.raises(ValueError, match=r"controls must have shape"):
         sims.with_start_scan(jnp.zeros((3,)), observations, _observations(rng, ()))
+    with pytest.raises(ValueError, match="leading axes must be the controls'"):
+        sims.with_start_scan(jnp.zeros((6, 3)), observations, _observations(rng, ()))
+    with pytest.raises(ValueError, match="leading axes must be the controls'"):
+        sims.with_start_scan(jnp.zeros((2, 5, 3)), observations, _observations(rng, ()))
     with pytest.raises(ValueError, match="start_observations.z has shape"):
         sims.with_start_scan(jnp.zeros((5, 3)), observations, _observations(rng, (5,)))
     with pytest.raises(ValueError, match="start_observations.z has shape"):
