@@ -29,7 +29,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxslam.geometry import wrap_angle
 from jaxslam.motion import odometry_from_poses
