@@ -40,6 +40,7 @@ from sims import robot as rb
 from sims.forest import random_forest, world_from_forest
 from sims.scenario import analytic_observations, lidar_observations, with_start_scan
 
+DEAD_RECKONING = "odometry only (dead reckoning)"  # the results row every filter is compared to
 TABLE_1 = np.array([[0.0, 0.06, 0.0002], [0.02, 0.006, 0.00003], [0.0, 0.06, 0.0003]])
 TABLE_2 = np.array([[0.005, 0.0], [0.0005, 0.0]])
 
@@ -217,7 +218,7 @@ def filter_comparison(args, fitted_params, max_obs=16, max_landmarks=256):
     odometry_drift = np.hypot(*(np.asarray(log.true_poses[:, -1, :2])
                                 - np.asarray(log.odometry_poses[:, -1, :2])).T)
     odometry_ate = jax.vmap(ate_rmse)(log.odometry_poses[:, 1:], log.true_poses[:, 1:])
-    results["odometry only (dead reckoning)"] = dict(
+    results[DEAD_RECKONING] = dict(
         final_pose_error=odometry_drift.tolist(), ate_rmse=np.asarray(odometry_ate).tolist())
     return results
 
@@ -247,13 +248,18 @@ def filter_markdown(results, args) -> str:
              "motion-noise coefficients (fitted against the simulator's truth); 'calibrated "
              "from the log' is told nothing (``jaxslam.calibrate_params`` on each robot's "
              "odometry and observations alone).", "",
-             "| Condition | final pose error mean [m] | median | ATE RMSE mean [m] | median |",
-             "|---|---|---|---|---|"]
+             "| Condition | final pose error mean [m] | median | ATE RMSE mean [m] | median | "
+             "robots 2x better than dead reckoning | worst robot: dead reckoning / filter |",
+             "|---|---|---|---|---|---|---|"]
+    reckoning = np.asarray(results[DEAD_RECKONING]["final_pose_error"])
     for name, row in results.items():
         final = np.asarray(row["final_pose_error"])
         ate = np.asarray(row.get("ate_rmse", [np.nan]))
+        ratio = reckoning / final  # per robot, final pose error
+        compared = ("- | -" if name == DEAD_RECKONING else
+                    f"{int(np.sum(ratio >= 2.0))} of {ratio.size} | {np.min(ratio):.1f}x")
         lines.append(f"| {name} | {final.mean():.3f} | {np.median(final):.3f} | "
-                     f"{np.nanmean(ate):.3f} | {np.nanmedian(ate):.3f} |")
+                     f"{np.nanmean(ate):.3f} | {np.nanmedian(ate):.3f} | {compared} |")
     return "\n".join(lines) + "\n"
 
 
