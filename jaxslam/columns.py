@@ -27,7 +27,7 @@ CONFIG_UNITS = {
     "scenario.path": _NONE, "scenario.num_steps": _COUNT, "scenario.step_length": "m",
     "scenario.max_range": "m", "scenario.observation_source": _NONE,
     "scenario.detection": _NONE, "scenario.odometry_noise_scale": _NONE, "scenario.world": _NONE,
-    "scenario.robot": _NONE,
+    "scenario.robot": _NONE, "scenario.first_scan": _NONE,
     "params.rot1_noise": "rad/m, rad/rad, rad", "params.trans_noise": "m/m, m/rad, m",
     "params.rot2_noise": "rad/m, rad/rad, rad", "params.motion_outlier_probability": "probability",
     "params.motion_outlier_scale": _NONE, "params.min_translation": "m",

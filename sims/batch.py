@@ -150,9 +150,11 @@ def scenario_batch(config: StudyConfig, run_ids: np.ndarray, width: int | None =
     tree_radii (N,) are the shared world's, or (R, ...) with ``scenario.world = "per_run"``.
 
     With ``scenario.robot = "mjx_wheeled"`` the MJX wheeled robot drives each run
-    (``sims.robot_runs.robot_batch``): it scans at rest before it drives, so controls are
-    (R, T+1, 3), observations (R, T+1, K, ...) and truth_pose (R, T+2, 3), the start pose
-    repeated for the zero move; the world leaves are (R, ...) in both kinds of world.
+    (``sims.robot_runs.robot_batch``): with ``scenario.first_scan = "at_start"`` (its
+    default) it scans at rest before it drives, so controls are (R, T+1, 3), observations
+    (R, T+1, K, ...) and truth_pose (R, T+2, 3), the start pose repeated for the zero move
+    (with "after_first_move": T, T and T+1 rows); the world leaves are (R, ...) in both kinds
+    of world.
 
     Lidar scans and the MJX robot need MuJoCo: without it, ``SimulatorNotInstalled`` (an
     ImportError naming the install command) is raised before anything is simulated.

@@ -27,11 +27,15 @@ SCENARIO_RULES = {
     "odometry_noise_scale": Rule("float", 0.0, True),
     "world": Rule("str"),
     "robot": Rule("str"),
+    "first_scan": Rule("str"),
 }
 SCENARIO_CHOICES = {"forest": ("random", "plantation"), "path": ("loop", "lawnmower", "random"),
                     "observation_source": ("analytic", "lidar"),
                     "detection": ("centroid", "kasa", "geometric", "ransac"),
-                    "world": ("shared", "per_run"), "robot": ("kinematic", "mjx_wheeled")}
+                    "world": ("shared", "per_run"), "robot": ("kinematic", "mjx_wheeled"),
+                    "first_scan": ("at_start", "after_first_move")}
+# The robot's own first scan when ``first_scan`` is not given.
+FIRST_SCAN_OF_ROBOT = {"kinematic": "after_first_move", "mjx_wheeled": "at_start"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,6 +57,12 @@ class ScenarioConfig:
     started at the path's first pose, driven by random wheel-speed commands with wheel slip,
     friction and acceleration limits; its encoder odometry is the controls and its chassis
     path the truth: ``sims.robot_runs``; analytic observations, odometry_noise_scale 1).
+    first_scan: "at_start" (the robot scans at rest at its start pose before it drives, behind
+    a zero move: a run has T + 1 filter steps, ``sims.scenario.with_start_scan``) or
+    "after_first_move" (the first scan is taken after the first move). Default: the robot's
+    own, ``FIRST_SCAN_OF_ROBOT`` ("at_start" for mjx_wheeled, whose first move from rest can
+    slip; "after_first_move" for the kinematic robot, the seed paper's set-up, which has no
+    "at_start" yet).
     """
 
     forest: str = "random"
@@ -67,8 +77,12 @@ class ScenarioConfig:
     odometry_noise_scale: float = 1.0
     world: str = "per_run"
     robot: str = "kinematic"
+    first_scan: str = ""
 
     def __post_init__(self):
+        if self.first_scan == "":  # the robot's own (frozen: set once, here)
+            own = FIRST_SCAN_OF_ROBOT.get(self.robot, "after_first_move")
+            object.__setattr__(self, "first_scan", own)
         check_fields(SECTION, self, SCENARIO_RULES)
         check_choices(SECTION, dataclasses.asdict(self), SCENARIO_CHOICES)
         if self.robot == "mjx_wheeled" and self.observation_source != "analytic":
@@ -79,6 +93,11 @@ class ScenarioConfig:
             raise ValueError(f"scenario.odometry_noise_scale={self.odometry_noise_scale!r} "
                              "has no effect with scenario.robot='mjx_wheeled' (its odometry "
                              "errors come from wheel slip, not Eq. (1) noise); leave it at 1.0")
+        if self.robot == "kinematic" and self.first_scan == "at_start":
+            raise ValueError("scenario.first_scan='at_start' is simulated for "
+                             "scenario.robot='mjx_wheeled' only; the kinematic robot takes "
+                             "its first scan after its first move (first_scan="
+                             "'after_first_move', its default)")
 
 
 def scenario_config(section) -> ScenarioConfig:
@@ -101,9 +120,14 @@ def scenario_config(section) -> ScenarioConfig:
 
 def scenario_to_dict(settings: ScenarioConfig) -> dict:
     """The [scenario] section written back (``Simulator.to_dict``): every key, except
-    ``robot`` at its default "kinematic", so that the study.toml, digest and resume check of
-    a kinematic study stay what they were before the key existed."""
+    ``robot`` at its default "kinematic" and ``first_scan`` at "after_first_move", so that the
+    study.toml, digest and resume check of a study stay what they were before the key
+    existed. A robot study written before the start scan therefore differs from today's
+    default in ``first_scan`` and is not resumed by mistake (its folder names the key); with
+    ``first_scan = "after_first_move"`` it resumes as it was."""
     out = dataclasses.asdict(settings)
     if out["robot"] == "kinematic":
         del out["robot"]
+    if out["first_scan"] == "after_first_move":
+        del out["first_scan"]
     return out

@@ -14,11 +14,13 @@ noise model. Per run and step:
   observations  analytic range-bearing to trunk centres along that true path, with Table 2
                 noise (``sims.scenario.analytic_observations``, as in the kinematic scenario).
 
-The robot scans once at rest before it drives (``sims.scenario.with_start_scan``): row 0 is a
-zero move and a scan at the start pose, and the truth repeats the start pose for it, so a run
-has T+1 filter steps (controls (T+1, 3), truth (T+2, 3)). The first interval starts from rest
-and can slip by 0.1 rad; without the start scan the filter's map would inherit that error for
-the whole run (docs/results.md, noise_model).
+The robot scans once at rest before it drives (``scenario.first_scan = "at_start"``, its
+default; ``sims.scenario.with_start_scan``): row 0 is a zero move and a scan at the start pose,
+and the truth repeats the start pose for it, so a run has T+1 filter steps (controls (T+1, 3),
+truth (T+2, 3)). The first interval starts from rest and can slip by 0.1 rad; without the
+start scan (``first_scan = "after_first_move"``: T steps, truth (T+1, 3), the other rows
+identical) the filter's map would inherit that error for the whole run (docs/results.md,
+noise_model).
 
 The scenario's ``path`` only sets the start pose, and ``step_length`` the top speed
 (step_length per interval); the forest keeps clear of the designed path, not of the robot's,
@@ -85,8 +87,9 @@ def place_path(start, robot_poses):
 def _robot_simulator(settings: ScenarioConfig, seed: int, max_obs: int):
     """jit(group of W robot runs): (run_ids (W,), start (W, 3), centres (W, N, 2),
     radii (W, N)) -> (controls (W, T+1, 3), observations (W, T+1, K, ...), tree_seen (W, N),
-    truth_pose (W, T+2, 3)), all float32 poses (row 0: the start scan, module docstring).
-    Cached: one MJX model and compile per study."""
+    truth_pose (W, T+2, 3)), all float32 poses (row 0: the start scan, module docstring; T
+    and T+1 rows with ``first_scan = "after_first_move"``). Cached: one MJX model and compile
+    per study."""
     from sims import robot as robot_lib
     from sims.scenario import analytic_observations, with_start_scan
 
@@ -104,12 +107,14 @@ def _robot_simulator(settings: ScenarioConfig, seed: int, max_obs: int):
 
     def observe(key, start, robot_poses, odometry_moves, centres, radii):
         truth = place_path(start, robot_poses.astype(jnp.float32))
+        controls = odometry_moves.astype(jnp.float32)
         observations = jax.vmap(scan, in_axes=(0, 0, None, None))(
             jax.random.split(key, settings.num_steps), truth[1:], centres, radii)
-        controls, observations = with_start_scan(
-            odometry_moves.astype(jnp.float32), observations,
-            scan(jax.random.fold_in(key, settings.num_steps), truth[0], centres, radii))
-        truth = jnp.concatenate([truth[:1], truth])  # the zero move stays at the start
+        if settings.first_scan == "at_start":
+            controls, observations = with_start_scan(
+                controls, observations,
+                scan(jax.random.fold_in(key, settings.num_steps), truth[0], centres, radii))
+            truth = jnp.concatenate([truth[:1], truth])  # the zero move stays at the start
         return controls, observations, observed_trees(observations, centres.shape[0]), truth
 
     def simulate(run_ids, start, centres, radii):
@@ -128,7 +133,8 @@ def robot_batch(config: StudyConfig, run_ids: np.ndarray, width: int) -> RunBatc
     """The runs ``run_ids`` (R,) driven by the MJX wheeled robot, in groups of ``width``.
 
     Returns a ``RunBatch`` whose leaves are all per run: controls (R, T+1, 3), observations
-    (R, T+1, K, ...), truth_pose (R, T+2, 3) (row 0: the start scan, module docstring),
+    (R, T+1, K, ...), truth_pose (R, T+2, 3) (row 0: the start scan, module docstring; one
+    row fewer each with ``first_scan = "after_first_move"``),
     tree_centres (R, N, 2), tree_radii (R, N),
     tree_seen (R, N) (trees observed at least once). Raises ``SimulatorNotInstalled`` (an
     ImportError naming the install command) without MuJoCo.

@@ -128,20 +128,68 @@ def test_robot_runs_do_not_depend_on_the_runs_asked_together(batch):
 
 def test_robot_setting_is_written_only_when_not_the_default():
     kinematic = studies.load_study_config(None, [])
-    assert "robot" not in studies.study_config_to_dict(kinematic)["scenario"]
+    assert kinematic.scenario.first_scan == "after_first_move"
+    assert not {"robot", "first_scan"} & set(studies.study_config_to_dict(kinematic)["scenario"])
     config = robot_config()
+    assert config.scenario.first_scan == "at_start"  # the robot's own default
     written = studies.study_config_to_dict(config)
     assert written["scenario"]["robot"] == "mjx_wheeled"
+    assert written["scenario"]["first_scan"] == "at_start"
     assert studies.study_config_from_dict(written) == config
     from jaxslam.cli import config_rows
 
     assert ("scenario.robot", '"mjx_wheeled"', "-", "") in config_rows(config)
+    assert ("scenario.first_scan", '"at_start"', "-", "") in config_rows(config)
+    # The earlier robot study (no start scan) is written as before the key existed.
+    earlier = robot_config('scenario.first_scan="after_first_move"')
+    assert "first_scan" not in studies.study_config_to_dict(earlier)["scenario"]
+
+
+def test_a_robot_study_from_before_the_start_scan_is_not_resumed_by_mistake(tmp_path):
+    """A folder written by a robot study before the start scan (its study.toml has no
+    first_scan) is refused under today's default, naming the key, and resumes with
+    first_scan = "after_first_move". Only the folder's config is written: no run."""
+    from jaxslam import study_store
+
+    earlier = studies.study_config_to_dict(robot_config('scenario.first_scan="after_first_move"'))
+    study_store.prepare_out_dir(earlier, tmp_path)
+    with pytest.raises(study_store.StudyError, match="scenario.first_scan"):
+        study_store.prepare_out_dir(studies.study_config_to_dict(robot_config()), tmp_path)
+    study_store.prepare_out_dir(earlier, tmp_path)  # the same study: accepted
+
+
+def test_robot_runs_without_the_start_scan_are_the_rows_after_it(batch):
+    """first_scan = "after_first_move": T steps, truth (T+1, 3); every row equals the
+    start-scan batch's row after its first (the same keys and robot). The two batches come
+    from separately compiled programs, whose float results may differ in the last bits (3e-17
+    measured on near-zero odometry), so floats are compared to 1e-6 (float32 poses and
+    ranges of metres: about 100 ulp), masks and ids exactly."""
+    from sims.batch import scenario_batch
+
+    config = robot_config('scenario.first_scan="after_first_move"')
+    without = jax.tree.map(np.asarray, scenario_batch(config, np.arange(3)))
+    assert without.controls.shape == (3, 8, 3) and without.truth_pose.shape == (3, 9, 3)
+    np.testing.assert_allclose(without.controls, batch.controls[:, 1:], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(without.truth_pose, batch.truth_pose[:, 1:], rtol=0, atol=1e-6)
+    for got, want in zip(jax.tree.leaves(without.observations),
+                         jax.tree.leaves(batch.observations)):
+        if np.issubdtype(got.dtype, np.floating):
+            np.testing.assert_allclose(got, want[:, 1:], rtol=0, atol=1e-6)
+        else:
+            np.testing.assert_array_equal(got, want[:, 1:])
+
+
+def test_the_kinematic_robot_has_no_start_scan_yet():
+    with pytest.raises(ValueError, match="scenario.first_scan='at_start'.*mjx_wheeled"):
+        studies.load_study_config(None, ['scenario.first_scan="at_start"'])
 
 
 @pytest.mark.parametrize("overrides, keys", [
     (['scenario.observation_source="lidar"'], ("scenario.robot", "scenario.observation_source")),
     (["scenario.odometry_noise_scale=2.0"], ("scenario.odometry_noise_scale", "scenario.robot")),
     (['scenario.robot="tracked"'], ("scenario.robot", "mjx_wheeled")),
+    (['scenario.first_scan="sometimes"'], ("scenario.first_scan", "at_start",
+                                           "after_first_move")),
 ])
 def test_bad_robot_settings_name_the_keys(overrides, keys):
     with pytest.raises(ValueError) as error:
