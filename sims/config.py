@@ -81,7 +81,8 @@ class ScenarioConfig:
 
     def __post_init__(self):
         if self.first_scan == "":  # the robot's own (frozen: set once, here)
-            own = FIRST_SCAN_OF_ROBOT.get(self.robot, "after_first_move")
+            own = FIRST_SCAN_OF_ROBOT.get(self.robot if isinstance(self.robot, str) else "",
+                                          "after_first_move")
             object.__setattr__(self, "first_scan", own)
         check_fields(SECTION, self, SCENARIO_RULES)
         check_choices(SECTION, dataclasses.asdict(self), SCENARIO_CHOICES)
@@ -119,15 +120,14 @@ def scenario_config(section) -> ScenarioConfig:
 
 
 def scenario_to_dict(settings: ScenarioConfig) -> dict:
-    """The [scenario] section written back (``Simulator.to_dict``): every key, except
-    ``robot`` at its default "kinematic" and ``first_scan`` at "after_first_move", so that the
-    study.toml, digest and resume check of a study stay what they were before the key
-    existed. A robot study written before the start scan therefore differs from today's
-    default in ``first_scan`` and is not resumed by mistake (its folder names the key); with
-    ``first_scan = "after_first_move"`` it resumes as it was."""
+    """The [scenario] section written back (``Simulator.to_dict``): every key, except, for
+    the kinematic robot, ``robot`` and ``first_scan`` (its only value, "after_first_move"), so
+    that a kinematic study's study.toml, digest and resume check stay what they were before
+    the keys existed. A robot study always writes ``first_scan``, so a robot study folder
+    written before the key existed (its runs have ``num_steps`` rows, no start scan) differs
+    from any robot config and is not resumed by mistake; adding ``first_scan =
+    "after_first_move"`` to its study.toml resumes it as it was."""
     out = dataclasses.asdict(settings)
     if out["robot"] == "kinematic":
-        del out["robot"]
-    if out["first_scan"] == "after_first_move":
-        del out["first_scan"]
+        del out["robot"], out["first_scan"]
     return out

@@ -140,43 +140,62 @@ def test_robot_setting_is_written_only_when_not_the_default():
 
     assert ("scenario.robot", '"mjx_wheeled"', "-", "") in config_rows(config)
     assert ("scenario.first_scan", '"at_start"', "-", "") in config_rows(config)
-    # The earlier robot study (no start scan) is written as before the key existed.
+    # The robot study without the start scan writes its value and reads back the same.
     earlier = robot_config('scenario.first_scan="after_first_move"')
-    assert "first_scan" not in studies.study_config_to_dict(earlier)["scenario"]
+    written = studies.study_config_to_dict(earlier)
+    assert written["scenario"]["first_scan"] == "after_first_move"
+    assert studies.study_config_from_dict(written) == earlier
 
 
-def test_a_robot_study_from_before_the_start_scan_is_not_resumed_by_mistake(tmp_path):
-    """A folder written by a robot study before the start scan (its study.toml has no
-    first_scan) is refused under today's default, naming the key, and resumes with
-    first_scan = "after_first_move". Only the folder's config is written: no run."""
+def test_a_robot_study_from_before_the_key_is_not_resumed_by_mistake(tmp_path):
+    """A robot study folder written before first_scan existed (its study.toml lacks the
+    key; its runs have no start scan) is refused under either value, naming the key; with
+    first_scan = "after_first_move" added to its study.toml it resumes. Only the folder's
+    config is written: no run."""
+    import tomllib
+
+    import tomli_w
+
     from jaxslam import study_store
 
-    earlier = studies.study_config_to_dict(robot_config('scenario.first_scan="after_first_move"'))
-    study_store.prepare_out_dir(earlier, tmp_path)
-    with pytest.raises(study_store.StudyError, match="scenario.first_scan"):
-        study_store.prepare_out_dir(studies.study_config_to_dict(robot_config()), tmp_path)
-    study_store.prepare_out_dir(earlier, tmp_path)  # the same study: accepted
+    without = studies.study_config_to_dict(robot_config('scenario.first_scan="after_first_move"'))
+    old = {**without, "scenario": {k: v for k, v in without["scenario"].items()
+                                   if k != "first_scan"}}
+    study_store.prepare_out_dir(old, tmp_path)
+    for value in ("at_start", "after_first_move"):
+        config = studies.study_config_to_dict(robot_config(f'scenario.first_scan="{value}"'))
+        with pytest.raises(study_store.StudyError, match="scenario.first_scan"):
+            study_store.prepare_out_dir(config, tmp_path)
+    study_file = tmp_path / "study.toml"
+    edited = tomllib.loads(study_file.read_text())
+    edited["scenario"]["first_scan"] = "after_first_move"
+    study_file.write_text(tomli_w.dumps(edited))
+    study_store.prepare_out_dir(without, tmp_path)  # the same study now: accepted
 
 
 def test_robot_runs_without_the_start_scan_are_the_rows_after_it(batch):
     """first_scan = "after_first_move": T steps, truth (T+1, 3); every row equals the
     start-scan batch's row after its first (the same keys and robot). The two batches come
     from separately compiled programs, whose float results may differ in the last bits (3e-17
-    measured on near-zero odometry), so floats are compared to 1e-6 (float32 poses and
-    ranges of metres: about 100 ulp), masks and ids exactly."""
+    measured on near-zero odometry), so floats are compared to rtol 1e-6 (a few float32 ulp)
+    with atol 1e-9 for values near zero, masks and ids exactly."""
     from sims.batch import scenario_batch
 
     config = robot_config('scenario.first_scan="after_first_move"')
     without = jax.tree.map(np.asarray, scenario_batch(config, np.arange(3)))
     assert without.controls.shape == (3, 8, 3) and without.truth_pose.shape == (3, 9, 3)
-    np.testing.assert_allclose(without.controls, batch.controls[:, 1:], rtol=0, atol=1e-6)
-    np.testing.assert_allclose(without.truth_pose, batch.truth_pose[:, 1:], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(without.controls, batch.controls[:, 1:], rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(without.truth_pose, batch.truth_pose[:, 1:], rtol=1e-6,
+                               atol=1e-9)
     for got, want in zip(jax.tree.leaves(without.observations),
                          jax.tree.leaves(batch.observations)):
         if np.issubdtype(got.dtype, np.floating):
-            np.testing.assert_allclose(got, want[:, 1:], rtol=0, atol=1e-6)
+            np.testing.assert_allclose(got, want[:, 1:], rtol=1e-6, atol=1e-9)
         else:
             np.testing.assert_array_equal(got, want[:, 1:])
+    # Trees seen: those of rows 1..T, so within the start-scan runs' (which add row 0's).
+    assert np.all(batch.tree_seen[without.tree_seen])
+    assert np.sum(batch.tree_seen) >= np.sum(without.tree_seen)
 
 
 def test_the_kinematic_robot_has_no_start_scan_yet():
