@@ -171,7 +171,8 @@ def filter_comparison(args, fitted_params, max_obs=16, max_landmarks=256):
     observations = observe(obs_keys, log.true_poses[:, 1:])
     controls = log.odometry_moves
     if args.first_scan:  # a scan at rest at the start pose anchors the map (with_start_scan)
-        # fold_in(k, n) is split(k, n + 1)[n]: a key after the R T step keys, never used.
+        # A key no step uses: with JAX's default partitionable threefry, fold_in(k, n) is
+        # split(k, n + 1)[n], the key after the R T step keys.
         start_keys = jax.random.split(jax.random.fold_in(
             key_obs, args.filter_runs * args.filter_intervals), args.filter_runs)
         start_scans = jax.tree.map(lambda a: a[:, 0], observe(start_keys[:, None],

@@ -30,8 +30,8 @@ start come from the study's world (shared, or the run's own with ``world = "per_
 Randomness: run i's key is ``fold_in(PRNGKey(seed), i)``; its commands and friction come from
 the first half of ``split(fold_in(key, 0))`` and its observation noise from the second (the
 kinematic scenario's odometry and observation keys): step t's scan from ``split(obs_key,
-T)[t]``, the start scan from ``fold_in(obs_key, T)`` (``split(obs_key, T + 1)[T]``, a key no
-step uses). So a run never depends on its neighbours or on the chunk size (runs are
+T)[t]``, the start scan from ``fold_in(obs_key, T)`` (a key no step uses; with JAX's default
+partitionable threefry it is ``split(obs_key, T + 1)[T]``). So a run never depends on its neighbours or on the chunk size (runs are
 simulated in groups of fixed width).
 
 Shapes: R runs, T = ``num_steps`` intervals of ``STEP_SECONDS``, N trees, K = max_obs.
