@@ -1,0 +1,173 @@
+"""Why the blind association splits MRCLAM's landmarks: three diagnostics, nothing chosen.
+
+Vicon and the barcodes only look here; no setting printed is one the pipeline uses. For each
+robot the pipeline calibrates from the log (``pipeline.filter_log``, P = 100, 64 slots, key
+``--seed``), then:
+
+1. **Re-sightings by the pause before them.** Along the best particle's history
+   (``lineage.landmark_identities``), each observation of a barcode seen before either keeps
+   the identity of that barcode's previous observation or has another (a new landmark, or
+   rarely another tree's). Binned by the steps since the barcode was last observed.
+2. **The camera's detection rate in view.** From the Vicon poses and landmarks, the share of
+   (step, landmark) pairs inside the calibrated miss region (range < ``miss_range``,
+   |bearing| < ``miss_bearing``) whose barcode the robot reported that step, against the
+   calibrated ``detection_probability``; and how often misses come in runs of 5 steps or
+   more (a landmark at the existence cap is deleted after about five misses at p_d 0.8).
+3. **The filter with one group of the calibrated settings changed** (``--variants``), over
+   ``--filter-keys`` filter keys (100, 101, ...): median ATE ratio (dead reckoning / filter),
+   identities started along the best history, landmarks kept.
+
+    python experiments/mrclam_diagnostics.py [--robots 1 2 3 4 5] [--seed 0] [--filter-keys 6]
+
+Variants (each applied to the calibrated Params, nothing else changed):
+  calibrated    as calibrated;
+  no_delete     existence cap 50 and deletion at -49.9 (a landmark is practically never
+                deleted);
+  pd_0.4        detection_probability 0.4 (about the camera's rate in view, item 2: a value
+                read off Vicon, so a diagnostic only);
+  range_x3_no_delete  the range noise x3 and no deletion.
+"""
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+from jaxslam import metrics, pipeline  # noqa: E402
+from jaxslam.datasets.mrclam import read_mrclam  # noqa: E402
+from jaxslam.datasets.mrclam_convert import DEFAULT_MAX_OBS, mrclam_log, mrclam_steps  # noqa: E402
+from jaxslam.datasets.odometry import odometry_path  # noqa: E402
+from jaxslam.filter import estimate, run_filter  # noqa: E402
+from jaxslam.geometry import range_bearing  # noqa: E402
+from jaxslam.lineage import landmark_identities, trace_lineage  # noqa: E402
+from jaxslam.types import FilterConfig  # noqa: E402
+
+DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "mrclam1"
+GAP_BINS = ((1, 2), (2, 5), (5, 20), (20, 100), (100, None))
+MISS_RUN = 5
+NO_DELETE = dict(existence_max=50.0, existence_delete=-49.9)
+VARIANTS = {
+    "calibrated": lambda p: {},
+    "no_delete": lambda p: NO_DELETE,
+    "pd_0.4": lambda p: dict(detection_probability=0.4),
+    "range_x3_no_delete": lambda p: dict(range_noise=np.asarray(p.range_noise) * 3.0,
+                                         **NO_DELETE),
+}
+
+
+def resighting_gaps(ids, barcode, valid):
+    """[(bin, kept, new)] over ``GAP_BINS``: re-sightings of a barcode that keep / change the
+    identity of its previous observation, by steps since it (ids, barcode (T, K), valid)."""
+    last_step, last_id = {}, {}
+    gaps, changed = [], []
+    for t, k in zip(*np.nonzero(valid & (ids >= 0))):
+        b = int(barcode[t, k])
+        if b in last_step:
+            gaps.append(t - last_step[b])
+            changed.append(ids[t, k] != last_id[b])
+        last_step[b], last_id[b] = t, ids[t, k]
+    gaps, changed = np.asarray(gaps), np.asarray(changed, bool)
+    rows = []
+    for low, high in GAP_BINS:
+        inside = (gaps >= low) & (gaps < (np.inf if high is None else high))
+        rows.append(((low, high), int(np.sum(inside & ~changed)), int(np.sum(inside & changed))))
+    return rows
+
+
+def camera_detection_rate(truth_pose, landmarks, barcode, valid, miss_range, miss_bearing):
+    """(rate, runs of >= MISS_RUN misses, runs): the share of Vicon (step, landmark) pairs in
+    the miss region whose barcode was reported that step, and the runs of consecutive
+    in-region steps without it."""
+    predicted = np.asarray(range_bearing(jnp.asarray(truth_pose)[:, None],
+                                         jnp.asarray(landmarks)[None]))
+    in_view = (predicted[..., 0] < miss_range) & (np.abs(predicted[..., 1]) < miss_bearing)
+    seen = np.zeros_like(in_view)
+    t, k = np.nonzero(valid & (barcode >= 0))
+    seen[t, barcode[t, k]] = True
+    missed = in_view & ~seen
+    runs = []
+    for column in missed.T:
+        edges = np.diff(np.concatenate([[0], column.astype(np.int8), [0]]))
+        runs.extend(np.nonzero(edges == -1)[0] - np.nonzero(edges == 1)[0])
+    runs = np.asarray(runs)
+    return float(seen[in_view].mean()), int(np.sum(runs >= MISS_RUN)), len(runs)
+
+
+def filter_variant(config, params, inputs, truth, dead_reckoning_ate, keys):
+    """(median ratio, ratios, median identities, median landmarks kept) over filter keys."""
+    config, controls, obs, start = inputs
+    ratios, identities, kept = [], [], []
+    for key in keys:
+        final, trace = run_filter(config, jax.random.PRNGKey(key), params, controls, obs,
+                                  jnp.asarray(start, jnp.float32), record_lineage=True)
+        ate = metrics.ate_rmse(np.asarray(trace.mean_pose, np.float64), truth)
+        path = trace_lineage(trace.lineage, estimate(final).best_particle)
+        identities.append(landmark_identities(path.match, path.birth_slot)[1])
+        kept.append(int(np.asarray(trace.num_landmarks)[-1]))
+        ratios.append(dead_reckoning_ate / ate)
+    return (float(np.median(ratios)), ratios, float(np.median(identities)),
+            float(np.median(kept)))
+
+
+def robot_report(data, robot, seed, filter_keys, variants):
+    raw = read_mrclam(data, robot)
+    steps = mrclam_steps(raw, DEFAULT_MAX_OBS)
+    log = mrclam_log(raw, steps)
+    config = FilterConfig(num_particles=100, max_landmarks=64, max_obs=DEFAULT_MAX_OBS)
+    run = pipeline.filter_log(log, config, key=jax.random.PRNGKey(seed), calibrate=True)
+    params = run.params
+    truth = np.asarray(log.truth_pose)
+    dead_reckoning = np.asarray(odometry_path(log.controls, log.initial_pose))[-len(truth):]
+    dr_ate = metrics.ate_rmse(dead_reckoning, truth)
+    barcode = np.asarray(steps.obs_landmark)
+    valid = np.asarray(log.obs_valid)
+
+    path = trace_lineage(run.trace.lineage, run.estimate.best_particle)
+    ids, count = landmark_identities(path.match, path.birth_slot)
+    print(f"robot {robot}: dead reckoning ATE {dr_ate:.3f} m; pipeline filter ATE "
+          f"{run.metrics['ate_rmse']:.3f} m; {count} identities along the best history for "
+          f"{len(np.unique(barcode[valid & (barcode >= 0)]))} barcodes", flush=True)
+    for (low, high), kept, new in resighting_gaps(ids, barcode, valid):
+        span = f"{low}+" if high is None else f"{low}-{high - 1}"
+        share = new / max(kept + new, 1)
+        print(f"  re-sightings after {span:>6s} steps: {kept} kept the identity, {new} "
+              f"did not ({share:.0%})")
+    rate, long_runs, runs = camera_detection_rate(
+        truth, np.asarray(log.truth_landmarks), barcode, valid,
+        float(params.miss_range), float(params.miss_bearing))
+    print(f"  camera's detection rate in the miss region {rate:.2f} against calibrated "
+          f"p_d {float(params.detection_probability):.2f}; {long_runs} of {runs} runs of "
+          f"misses last {MISS_RUN} steps or more")
+    inputs = pipeline.log_inputs(log, config)
+    keys = range(100, 100 + filter_keys)
+    for name in variants:
+        changed = params._replace(**{field: jnp.asarray(value, jnp.float32) for field, value
+                                     in VARIANTS[name](params).items()})
+        median, ratios, identities, kept = filter_variant(
+            config, changed, inputs, truth, dr_ate, keys)
+        print(f"  {name:20s} ratio median {median:.2f}x "
+              f"({', '.join(f'{r:.2f}' for r in ratios)}); identities {identities:.0f}; "
+              f"landmarks kept {kept:.0f}", flush=True)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", default=str(DATA))
+    parser.add_argument("--robots", type=int, nargs="+", default=[1, 2, 3, 4, 5])
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--filter-keys", type=int, default=6)
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS),
+                        choices=list(VARIANTS))
+    args = parser.parse_args(argv)
+    for robot in args.robots:
+        robot_report(args.data, robot, args.seed, args.filter_keys, args.variants)
+
+
+if __name__ == "__main__":
+    main()
