@@ -40,7 +40,7 @@ over 1 m against the listed landmark, under 0.2 m against the other; checked in
 row. The tables are returned as they are. Scores that compare the map with the set of
 positions (``metrics``) do not depend on it, and a known-association run with these ids
 builds each landmark where the other's row lies; only per-id comparisons with
-``truth_landmarks`` must swap the two rows.
+``truth_landmarks`` must swap the two rows (``landmarks_as_sighted``).
 
 Everything here is host-side NumPy float64, in small pure functions.
 """
@@ -66,6 +66,8 @@ TIME_SLACK = 1e-9  # [s], float rounding allowance when comparing times
 # step is 0.24 s, 2 cm). Measured: dead-reckoning ATE of every robot changes by < 1 mm
 # between 0, 1 mm and 1 cm.
 MRCLAM_MIN_TRANSLATION = 1e-3
+# obs_landmark indices whose readings lie at each other's listed position (module docstring)
+SWAPPED_LANDMARK_ROWS = (5, 11)
 
 
 class MrclamSteps(NamedTuple):
@@ -220,3 +222,12 @@ def mrclam_log(run: MrclamRun, steps: MrclamSteps,
                    truth_landmarks=run.landmark_xy,
                    initial_pose=interpolate_poses(start, run.truth_time, run.truth_pose)[0])
     return validate_log(log, source=f"MRCLAM robot {run.robot}")
+
+
+def landmarks_as_sighted(truth_landmarks):
+    """``truth_landmarks`` (15, 2) with rows ``SWAPPED_LANDMARK_ROWS`` exchanged: row i is
+    where the readings with ``obs_landmark`` i lie (module docstring). A copy."""
+    landmarks = np.array(truth_landmarks, dtype=np.float64, copy=True)
+    a, b = SWAPPED_LANDMARK_ROWS
+    landmarks[[a, b]] = landmarks[[b, a]]
+    return landmarks
