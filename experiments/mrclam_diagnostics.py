@@ -113,9 +113,13 @@ def mixed_identities(ids, barcode, valid):
 def misses_to_delete(params) -> int:
     """Consecutive misses that take a landmark from the existence cap below the deletion
     threshold: ceil((cap - threshold) / -log((1 - p_d) / (1 - p_f))) (``landmarks``'
-    existence update)."""
+    existence update). ValueError when p_d <= p_f: a miss then never lowers the log-odds."""
     per_miss = -np.log((1.0 - float(params.detection_probability))
                        / (1.0 - float(params.false_alarm_probability)))
+    if not per_miss > 0.0:
+        raise ValueError(f"detection_probability={float(params.detection_probability)} <= "
+                         f"false_alarm_probability={float(params.false_alarm_probability)}: "
+                         "misses never delete a landmark")
     span = float(params.existence_max) - float(params.existence_delete)
     return int(np.ceil(span / per_miss))
 

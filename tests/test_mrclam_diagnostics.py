@@ -62,6 +62,9 @@ def test_misses_to_delete():
     assert diagnostics.misses_to_delete(params) == 5
     params = params._replace(detection_probability=jnp.asarray(0.45, jnp.float32))
     assert diagnostics.misses_to_delete(params) == 13
+    with pytest.raises(ValueError, match="never delete"):
+        diagnostics.misses_to_delete(params._replace(
+            detection_probability=jnp.asarray(0.0117, jnp.float32)))
 
 
 def test_landmarks_as_sighted_swaps_only_the_two_rows():
@@ -79,6 +82,7 @@ def test_resighting_gaps_of_an_empty_log():
     empty = np.zeros((4, 2), int)
     rows = diagnostics.resighting_gaps(empty - 1, empty - 1, empty.astype(bool))
     assert [(kept, new) for _, kept, new in rows] == [(0, 0)] * len(diagnostics.GAP_BINS)
+    assert diagnostics.mixed_identities(empty - 1, empty - 1, empty.astype(bool)) == (0, 0)
 
 
 def test_camera_detection_rate_and_miss_runs():

@@ -328,12 +328,15 @@ def test_real_dataset_barcodes_of_subjects_11_and_17_read_each_other_s_position(
         log = mc.mrclam_log(run, steps)
         step, row = np.nonzero(log.obs_valid)
         listed = steps.obs_landmark[step, row]
-        for index, other in ((5, 11), (11, 5)):
+        sighted = mc.landmarks_as_sighted(log.truth_landmarks)
+        a, b = mc.SWAPPED_LANDMARK_ROWS
+        for index, other in ((a, b), (b, a)):
             seen = listed == index
             assert seen.sum() > 100, robot
             pose, measured = log.truth_pose[step[seen], :2], log.obs_z[step[seen], row[seen], 0]
             assert _median_range_error(pose, measured, log.truth_landmarks[index]) > 1.0, robot
             assert _median_range_error(pose, measured, log.truth_landmarks[other]) < 0.2, robot
+            np.testing.assert_array_equal(sighted[index], log.truth_landmarks[other])
 
 
 def _median_range_error(pose, measured, landmark):
