@@ -31,6 +31,9 @@ Variants (each applied to the calibrated Params, nothing else changed):
                 deleted);
   pd_0.4        detection_probability 0.4 (about the detection rate per step in view, item 2: a
                 value read off Vicon, so a diagnostic only);
+  pd_0.2        detection_probability 0.2, about the rate one step after a miss (item 2): in a
+                run of misses each costs what a detection model with memory would charge
+                after the first (a hit's log-odds gain changes less, p_f being 0.002-0.012);
   range_x3_no_delete  the range noise x3 and no deletion.
 """
 from __future__ import annotations
@@ -67,6 +70,7 @@ VARIANTS = {
     "calibrated": lambda p: {},
     "no_delete": lambda p: NO_DELETE,
     "pd_0.4": lambda p: dict(detection_probability=0.4),
+    "pd_0.2": lambda p: dict(detection_probability=0.2),
     "range_x3_no_delete": lambda p: dict(range_noise=np.asarray(p.range_noise) * 3.0,
                                          **NO_DELETE),
 }

@@ -140,5 +140,6 @@ def test_each_variant_gives_valid_params(name):
     assert differ == {"calibrated": set(),
                       "no_delete": {"existence_max", "existence_delete"},
                       "pd_0.4": {"detection_probability"},
+                      "pd_0.2": {"detection_probability"},
                       "range_x3_no_delete": {"range_noise", "existence_max",
                                              "existence_delete"}}[name]
