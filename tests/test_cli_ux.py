@@ -115,7 +115,7 @@ def test_every_config_key_and_param_has_a_unit():
     keys = _flat_keys({k: v for k, v in data.items() if k not in ("params", "sweep")})
     keys += [f"params.{name}" for name in Params._fields]
     keys += ["scenario.robot"]  # written out only when it is not the default, "kinematic"
-    keys += ["scenario.first_scan"]  # written out only when "at_start" (robot studies)
+    keys += ["scenario.first_scan"]  # written out for robot studies only
     missing = [key for key in keys if key not in cli.CONFIG_UNITS]
     assert not missing, f"add the units of {missing} to cli.CONFIG_UNITS"
     stale = sorted(set(cli.CONFIG_UNITS) - set(keys))
