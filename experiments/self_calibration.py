@@ -39,10 +39,10 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam import lineage, metrics
+from jaxslam.calibration_bootstrap import bootstrap_intervals, burst_rms_factor
 from jaxslam.calibration_residuals import NOISE_GROUPS, typical_stds
 from jaxslam.datasets.odometry import odometry_path
 from jaxslam.filter import estimate, run_filter
-from jaxslam.motion import burst_variance_factor
 from jaxslam.pipeline import offline_path
 from jaxslam.self_calibration import (calibrate_params, em_typical_std,
                                       group_scales, starting_params)
@@ -142,16 +142,13 @@ class Recovery(NamedTuple):
     total_inside: np.ndarray
 
 
-def burst_rms_factor(info) -> float:
-    """sqrt(1 - eps + eps kappa^2) of the bursts the calibration fitted
-    (``CalibrationInfo.bursts_fitted``; eps ``motion_outlier_probability``, kappa
-    ``motion_outlier_scale`` from ``CalibrationInfo.values``), 1 when it fitted none."""
-    if not info.bursts_fitted:
-        return 1.0
-    fitted = default_params(dtype=jnp.float64, **{
-        name: info.values[name] for name in ("motion_outlier_probability",
-                                             "motion_outlier_scale")})
-    return float(np.sqrt(burst_variance_factor(fitted)))
+def true_typical_std(truth_params, odometry, observations) -> np.ndarray:
+    """(4,) the true model's typical std per group over this log's moves (T, 3) and valid
+    observations (non-finite rows not counted)."""
+    z = np.asarray(observations.z, np.float64)
+    valid = np.asarray(observations.valid) & np.all(np.isfinite(z), axis=-1)
+    return np.asarray(typical_stds(truth_params, np.asarray(odometry, np.float64),
+                                   z[valid][:, 0]))
 
 
 def recovery(truth_params, info, odometry, observations) -> Recovery:
@@ -160,10 +157,7 @@ def recovery(truth_params, info, odometry, observations) -> Recovery:
 
     The ratio is EM's own estimate (``self_calibration.em_typical_std``: the likelihood
     search's scales divided out) over the truth's."""
-    z = np.asarray(observations.z, np.float64)
-    valid = np.asarray(observations.valid) & np.all(np.isfinite(z), axis=-1)
-    true = np.asarray(typical_stds(truth_params, np.asarray(odometry, np.float64),
-                                   z[valid][:, 0]))
+    true = true_typical_std(truth_params, odometry, observations)
     scales = group_scales(info)
     ratio = em_typical_std(info) / true
     half = np.array([1.96 * info.relative_std.get(g, np.inf) for g in NOISE_GROUPS])
@@ -210,6 +204,47 @@ def _write_recovery(args, recovered):
         f"{np.median(half[:, g]):.3f} | {int(inside[:, g].sum())} of {len(recovered)} "
         f"| {int(scaled[:, g].sum())} | {spread(total[:, g])} | "
         f"{int(total_inside[:, g].sum())} of {len(recovered)} |\n"
+        for g, group in enumerate(NOISE_GROUPS)))
+
+
+class BootstrapRecovery(NamedTuple):
+    """The bootstrap interval of one run against the truth, per group (4,): lower / upper
+    the interval's limits over EM's estimate (``calibration_bootstrap.total_typical_std``),
+    truth the true typical std over it, inside: the truth within the limits."""
+
+    lower: np.ndarray
+    upper: np.ndarray
+    truth: np.ndarray
+    inside: np.ndarray
+
+
+def bootstrap_recovery(truth_params, found, odometry, observations) -> BootstrapRecovery:
+    """``BootstrapRecovery`` of ``found`` (``BootstrapIntervals``); odometry (T, 3) and
+    observations as ``recovery``'s."""
+    true = true_typical_std(truth_params, odometry, observations)
+    return BootstrapRecovery(found.lower / found.estimate, found.upper / found.estimate,
+                             true / found.estimate,
+                             (found.lower <= true) & (true <= found.upper))
+
+
+def _write_bootstrap(args, booted):
+    """Append this regime's bootstrap rows to results/self_calibration/bootstrap.md."""
+    header = (
+        "Parametric-bootstrap intervals (``calibration_bootstrap``, bias-corrected normal, "
+        "95 %) of each group's typical std, bursts counted: the limits and the truth over "
+        "EM's estimate, median over runs, and the runs whose truth lies inside.\n\n"
+        "| seed | odometry x Table 1 | sensor x Table 2 | wobble [m] | replicates | group | "
+        "runs | lower / EM | upper / EM | truth / EM | truth inside |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|\n")
+    lower = np.stack([b.lower for b in booted])
+    upper = np.stack([b.upper for b in booted])
+    truth = np.stack([b.truth for b in booted])
+    inside = np.stack([b.inside for b in booted])
+    _append_rows("bootstrap.md", header, "".join(
+        f"| {args.seed} | {args.odometry_scale:g} | {args.sensor_scale:g} | {args.wobble:g} "
+        f"| {args.bootstrap} | {group} | {len(booted)} | {np.median(lower[:, g]):.2f} | "
+        f"{np.median(upper[:, g]):.2f} | {np.median(truth[:, g]):.2f} | "
+        f"{int(inside[:, g].sum())} of {len(booted)} |\n"
         for g, group in enumerate(NOISE_GROUPS)))
 
 
@@ -265,6 +300,11 @@ def main(argv=None):
     parser.add_argument("--wobble", type=float, default=0.3,
                         help="lateral wobble amplitude [m]; 0.3 turns up to ~0.15 rad a step, "
                         "0 is a smooth circle (0.025 rad a step)")
+    parser.add_argument("--bootstrap", type=int, default=0, metavar="B",
+                        help="also state each noise group's parametric-bootstrap interval "
+                        "from B replicate calibrations (calibration_bootstrap; B >= 2, about "
+                        "20) and count the runs whose truth lies inside; "
+                        "results/self_calibration/bootstrap.md")
     parser.add_argument("--offline", action="store_true",
                         help="also score the offline estimate (smoothed, missed loops closed: "
                         "offline_error) of both filters; results/self_calibration/offline.md")
@@ -272,7 +312,7 @@ def main(argv=None):
     config = FilterConfig(num_particles=args.particles, max_landmarks=96, max_obs=12,
                           proposal=args.proposal)
     truth_params = true_params(args.odometry_scale, args.sensor_scale)
-    rows, recovered, offline = [], [], []
+    rows, recovered, offline, booted = [], [], [], []
     for run in range(args.runs):
         key = jax.random.fold_in(jax.random.PRNGKey(args.seed), run)
         key_log, key_filter = jax.random.split(key)
@@ -289,6 +329,17 @@ def main(argv=None):
             config, key_filter, calibrated, controls, obs, truth, trees, args.offline)
         rows.append((dr_error, true_error, cal_error, true_map, cal_map, seen))
         recovered.append(recovery(truth_params, info, controls, obs))
+        if args.bootstrap:
+            start = time.perf_counter()
+            found = bootstrap_intervals(config, key_filter, controls, obs, truth[0],
+                                        starting_params(config), calibrated, info,
+                                        replicates=args.bootstrap)
+            booted.append(bootstrap_recovery(truth_params, found, controls, obs))
+            print(f"   bootstrap ({args.bootstrap} replicates, "
+                  f"{time.perf_counter() - start:.0f} s): true typical std inside the interval:",
+                  dict(zip(NOISE_GROUPS, booted[-1].inside)), "interval / EM estimate:",
+                  {g: (round(lo, 2), round(hi, 2)) for g, lo, hi in zip(
+                      NOISE_GROUPS, booted[-1].lower, booted[-1].upper)})
         if args.offline:
             offline.append([true_offline, cal_offline])
             print(f"   offline (smoothed, loops closed): true noise {offline[-1][0]:.3f} m, "
@@ -310,6 +361,8 @@ def main(argv=None):
     _write_recovery(args, recovered)
     if args.offline:
         _write_offline(args, rows, np.asarray(offline))
+    if args.bootstrap:
+        _write_bootstrap(args, booted)
     print(f"median over {args.runs} runs: dead reckoning {med[0]:.3f} m, true noise "
           f"{med[1]:.3f} m, calibrated {med[2]:.3f} m; map true {med[3]:.0f}, calibrated "
           f"{med[4]:.0f}, trees seen {med[5]:.0f}")

@@ -496,6 +496,33 @@ def test_calibrate_without_the_scale_search(tmp_path, monkeypatch, capsys):
     assert "likelihood over noise scales" not in out and "noise scale" not in out
 
 
+def test_calibrate_with_bootstrap_intervals(tmp_path, monkeypatch, capsys):
+    """``--bootstrap B`` prints, per noise group, EM's estimate, the replicates' median over
+    it and an interval in the group's unit; B < 2 is refused before any work."""
+    from jaxslam.datasets.log_format import save_log
+
+    monkeypatch.setenv("JAXSLAM_CACHE_DIR", str(tmp_path / "cache"))
+    save_log(tmp_path / "noisy.npz", _noisy_log())
+    base = ["calibrate", "--data", str(tmp_path / "noisy.npz"), "--out",
+            str(tmp_path / "p.toml"), "--set", "filter.num_particles=16", "--set",
+            "filter.max_landmarks=48", "--no-scale-search"]
+    try:
+        assert cli.main(base + ["--bootstrap", "1"]) == 2
+        assert "--bootstrap needs B >= 2" in capsys.readouterr().err
+        status = cli.main(base + ["--bootstrap", "2"])
+    finally:
+        _reset_cache_config()
+    out = capsys.readouterr().out
+    assert status == 0 and (tmp_path / "p.toml").is_file()
+    assert "replicate 2 of 2" in out
+    rows = {line.split()[0]: line.split() for line in out.splitlines()
+            if line.startswith("    ") and "replicates x" in line}
+    assert set(rows) == {"heading", "translation", "range", "bearing"}
+    for words in rows.values():  # name, estimate, unit, "replicates", xR, [lo, hi], unit
+        lower, upper = float(words[5].strip("[,")), float(words[6].strip("]"))
+        assert float(words[1]) > 0 and 0 < lower <= upper and words[7] == words[2]
+
+
 def test_params_file_errors(tmp_path):
     from jaxslam import pipeline
 

@@ -104,6 +104,33 @@ def _print_calibration(info) -> None:
               f"landmarks of {info.samples.get('radius', 0)} radii)")
 
 
+def _print_bootstrap(args, filter_config, log, start_params, params, info) -> None:
+    """Print ``calibration_bootstrap.bootstrap_intervals`` of a ``jaxslam calibrate`` run."""
+    import jax
+    import numpy as np
+
+    from jaxslam.calibration_bootstrap import bootstrap_intervals
+    from jaxslam.calibration_residuals import NOISE_GROUP_UNITS, NOISE_GROUPS
+
+    if not info.values:
+        print("bootstrap: skipped, the calibration fitted nothing")
+        return
+    print(f"bootstrap: {args.bootstrap} replicate logs drawn from the calibrated model, each "
+          "calibrated again ...")
+    found = bootstrap_intervals(
+        filter_config, jax.random.PRNGKey(args.seed), log.controls.astype("float32"),
+        log.observations(), log.initial_pose, start_params, params, info,
+        replicates=args.bootstrap,
+        progress=lambda done, total: print(f"  replicate {done} of {total}", flush=True),
+        **{k: v for k, v in _calibration_options(args).items() if k != "scale_search"})
+    print("  noise std (rms over this log, bursts counted): EM's estimate, the replicates' "
+          "median over it, and the bias-corrected 95 % interval:")
+    for group, (name, unit) in enumerate(zip(NOISE_GROUPS, NOISE_GROUP_UNITS)):
+        ratio = np.median(found.replicates[:, group]) / found.estimate[group]
+        print(f"    {name:<12} {found.estimate[group]:.4g} {unit}  replicates x{ratio:.2f}  "
+              f"[{found.lower[group]:.4g}, {found.upper[group]:.4g}] {unit}")
+
+
 def _print_warnings(lines) -> None:
     for line in lines:
         print(f"WARNING: {line}")
@@ -280,13 +307,18 @@ def cmd_calibrate(args) -> int:
 
     common.enable_compilation_cache()
     log = _load_robot_log(args.data)
-    _, filter_config, params, _ = _log_settings(args, log)
+    if args.bootstrap and (args.bootstrap < 2 or log.motion_model != "odometry"):
+        raise UsageError(f"--bootstrap needs B >= 2 replicates (got {args.bootstrap}) and a "
+                         f"log of odometry moves (this one: {log.motion_model!r})")
+    _, filter_config, start_params, _ = _log_settings(args, log)
     params, info = calibrate_params(
         filter_config, jax.random.PRNGKey(args.seed), log.controls.astype("float32"),
-        log.observations(), log.initial_pose, params, progress=print,
+        log.observations(), log.initial_pose, start_params, progress=print,
         **_calibration_options(args))
     _print_calibration(info)
     _print_warnings(info.warnings)
+    if args.bootstrap:
+        _print_bootstrap(args, filter_config, log, start_params, params, info)
     saved = pipeline.save_params(args.out, params, comment=f"calibrated from {args.data} by "
                                  f"jaxslam calibrate ({info.verdict})")
     print(f"wrote {saved} (use it with: jaxslam run --data {args.data} --params {saved})")

@@ -134,6 +134,12 @@ def _add_calibrate(sub) -> None:
     calibrate.add_argument("--config", help="study TOML whose filter/params to start from "
                                             "(default: none: the built-in defaults)")
     calibrate.add_argument("--seed", type=int, default=0, help="PRNG seed")
+    calibrate.add_argument("--bootstrap", type=int, default=0, metavar="B",
+                           help="also print each noise group's 95 %% interval from B "
+                                "replicate logs drawn from the calibrated model and "
+                                "calibrated again (parametric bootstrap: EM's bias and "
+                                "spread, not only the sampling error; costs B calibrations; "
+                                "odometry logs only; about 20) (default: 0: none)")
     _add_no_scale_search(calibrate)
     _add_set(calibrate)
     calibrate.set_defaults(func=cmd_calibrate)
