@@ -18,7 +18,9 @@ model's std over this log's moves and observations, ``CalibrationInfo.typical_st
 likelihood search's scales divided out) over the true model's on the same log, and whether
 that ratio lies within the interval the calibration states, 1 +- 1.96
 ``CalibrationInfo.relative_std`` (its 95 % interval if the std's error were only the
-sampling error of its samples).
+sampling error of its samples). With ``--bootstrap B`` also whether the truth lies within
+the parametric bootstrap's interval (``jaxslam.calibration_bootstrap``: B replicate logs
+drawn from the calibrated model and calibrated again, which counts EM's bias as well).
 
     python experiments/self_calibration.py --runs 8 --odometry-scale 2 --sensor-scale 5
 """
