@@ -180,6 +180,12 @@ def _append_rows(name: str, header: str, rows: str) -> None:
         handle.write(rows)
 
 
+def _stack_fields(records):
+    """Each field of a list of NamedTuples of (4,) arrays, stacked over the runs: a tuple of
+    (R, 4) arrays in field order."""
+    return tuple(np.stack([getattr(r, name) for r in records]) for name in records[0]._fields)
+
+
 def _write_recovery(args, recovered):
     """Append this regime's recovery rows to results/self_calibration/recovery.md."""
     header = (
@@ -193,12 +199,7 @@ def _write_recovery(args, recovered):
         "EM / true | stated half-width | truth inside | scaled by the search | "
         "EM / true, bursts counted | truth inside, bursts counted |\n"
         "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
-    ratio = np.stack([r.ratio for r in recovered])
-    half = np.stack([r.half_width for r in recovered])
-    inside = np.stack([r.inside for r in recovered])
-    scaled = np.stack([r.scaled for r in recovered])
-    total = np.stack([r.total_ratio for r in recovered])
-    total_inside = np.stack([r.total_inside for r in recovered])
+    ratio, half, inside, scaled, total, total_inside = _stack_fields(recovered)
     spread = lambda x: f"{np.median(x):.2f} [{x.min():.2f}, {x.max():.2f}]"
     _append_rows("recovery.md", header, "".join(
         f"| {args.seed} | {args.odometry_scale:g} | {args.sensor_scale:g} | "
@@ -238,10 +239,7 @@ def _write_bootstrap(args, booted):
         "| seed | odometry x Table 1 | sensor x Table 2 | wobble [m] | replicates | group | "
         "runs | lower / EM | upper / EM | truth / EM | truth inside |\n"
         "|---|---|---|---|---|---|---|---|---|---|---|\n")
-    lower = np.stack([b.lower for b in booted])
-    upper = np.stack([b.upper for b in booted])
-    truth = np.stack([b.truth for b in booted])
-    inside = np.stack([b.inside for b in booted])
+    lower, upper, truth, inside = _stack_fields(booted)
     _append_rows("bootstrap.md", header, "".join(
         f"| {args.seed} | {args.odometry_scale:g} | {args.sensor_scale:g} | {args.wobble:g} "
         f"| {args.bootstrap} | {group} | {len(booted)} | {np.median(lower[:, g]):.2f} | "
