@@ -515,6 +515,8 @@ def test_calibrate_with_bootstrap_intervals(tmp_path, monkeypatch, capsys):
     out = capsys.readouterr().out
     assert status == 0 and (tmp_path / "p.toml").is_file()
     assert "replicate 2 of 2" in out
+    # The settings are written before the replicates run (a long bootstrap never loses them).
+    assert out.index("wrote ") < out.index("replicate 1 of 2")
     rows = {line.split()[0]: line.split() for line in out.splitlines()
             if line.startswith("    ") and "replicates x" in line}
     assert set(rows) == {"heading", "translation", "range", "bearing"}

@@ -184,9 +184,10 @@ def test_bootstrap_recovery_and_its_table(tmp_path, monkeypatch):
                            bearing_noise=(0.001, 0.004))
     true = typical_stds(truth, controls, np.full(40, 3.0))
     estimate = true * np.array([0.8, 1.0, 1.0, 1.3])
-    found = BootstrapIntervals(estimate, np.ones((3, 4)), np.zeros(4), np.zeros(4),
-                               estimate * np.array([1.1, 0.9, 0.95, 0.8]),
-                               estimate * np.array([1.3, 1.1, 1.05, 0.9]), 0.95)
+    found = BootstrapIntervals(estimate, np.ones((3, 4)), np.ones((3, 4)), np.zeros(4),
+                               np.zeros(4), estimate * np.array([1.1, 0.9, 0.95, 0.8]),
+                               estimate * np.array([1.3, 1.1, 1.05, 0.9]), 0.95,
+                               np.zeros(4, int))
     booted = bootstrap_recovery(truth, found, controls, obs)
     np.testing.assert_allclose(booted.truth, [1.25, 1.0, 1.0, 1 / 1.3], rtol=1e-6)
     np.testing.assert_array_equal(booted.inside, [True, True, True, False])

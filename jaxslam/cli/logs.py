@@ -113,22 +113,30 @@ def _print_bootstrap(args, filter_config, log, start_params, params, info) -> No
     from jaxslam.calibration_residuals import NOISE_GROUP_UNITS, NOISE_GROUPS
 
     if not info.values:
-        print("bootstrap: skipped, the calibration fitted nothing")
+        print("parametric bootstrap: skipped, the calibration fitted nothing")
         return
-    print(f"bootstrap: {args.bootstrap} replicate logs drawn from the calibrated model, each "
-          "calibrated again ...")
+    print(f"parametric bootstrap: {args.bootstrap} replicate logs drawn from the calibrated "
+          "model, each calibrated again ...")
     found = bootstrap_intervals(
         filter_config, jax.random.PRNGKey(args.seed), log.controls.astype("float32"),
         log.observations(), log.initial_pose, start_params, params, info,
         replicates=args.bootstrap,
         progress=lambda done, total: print(f"  replicate {done} of {total}", flush=True),
         **{k: v for k, v in _calibration_options(args).items() if k != "scale_search"})
-    print("  noise std (rms over this log, bursts counted): EM's estimate, the replicates' "
-          "median over it, and the bias-corrected 95 % interval:")
+    print("  noise std fitted by EM (rms over this log, before the likelihood's search, "
+          "fitted bursts counted), the replicates' mean factor over the noise they were "
+          "drawn with, and the 95 % interval for the log's true std:")
     for group, (name, unit) in enumerate(zip(NOISE_GROUPS, NOISE_GROUP_UNITS)):
-        ratio = np.median(found.replicates[:, group]) / found.estimate[group]
-        print(f"    {name:<12} {found.estimate[group]:.4g} {unit}  replicates x{ratio:.2f}  "
-              f"[{found.lower[group]:.4g}, {found.upper[group]:.4g}] {unit}")
+        if name not in info.relative_std:
+            continue
+        line = f"    {name:<12} {found.estimate[group]:.4g} {unit}  "
+        if found.failed[group]:
+            line += (f"no interval: {found.failed[group]} of {args.bootstrap} replicates "
+                     "fitted nothing")
+        else:
+            line += (f"replicates x{np.exp(found.bias[group]):.2f}  "
+                     f"[{found.lower[group]:.4g}, {found.upper[group]:.4g}] {unit}")
+        print(line)
 
 
 def _print_warnings(lines) -> None:
@@ -307,9 +315,12 @@ def cmd_calibrate(args) -> int:
 
     common.enable_compilation_cache()
     log = _load_robot_log(args.data)
-    if args.bootstrap and (args.bootstrap < 2 or log.motion_model != "odometry"):
-        raise UsageError(f"--bootstrap needs B >= 2 replicates (got {args.bootstrap}) and a "
-                         f"log of odometry moves (this one: {log.motion_model!r})")
+    if args.bootstrap and args.bootstrap < 2:
+        raise UsageError(f"--bootstrap needs B >= 2 replicates (about 20); got "
+                         f"{args.bootstrap}")
+    if args.bootstrap and log.motion_model != "odometry":
+        raise UsageError(f"--bootstrap draws odometry moves (rot1, trans, rot2); this log's "
+                         f"motion model is {log.motion_model!r}")
     _, filter_config, start_params, _ = _log_settings(args, log)
     params, info = calibrate_params(
         filter_config, jax.random.PRNGKey(args.seed), log.controls.astype("float32"),
@@ -317,11 +328,11 @@ def cmd_calibrate(args) -> int:
         **_calibration_options(args))
     _print_calibration(info)
     _print_warnings(info.warnings)
-    if args.bootstrap:
-        _print_bootstrap(args, filter_config, log, start_params, params, info)
     saved = pipeline.save_params(args.out, params, comment=f"calibrated from {args.data} by "
                                  f"jaxslam calibrate ({info.verdict})")
     print(f"wrote {saved} (use it with: jaxslam run --data {args.data} --params {saved})")
+    if args.bootstrap:
+        _print_bootstrap(args, filter_config, log, start_params, params, info)
     return 0
 
 
