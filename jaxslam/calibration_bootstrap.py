@@ -15,7 +15,8 @@ both bias and spread on logs drawn from the calibrated model itself:
      landmarks m_l, and the landmark l(t, k) of each associated observation;
   2. replicate b draws a log of the same design, at EM's own noise (the calibrated settings
      with the likelihood search's scales divided out: the estimate that is bootstrapped):
-     each move u*_t around the smoothed move u(x_{t-1}, x_t) by Eq. (1) of Geiser et al.,
+     each move u*_t around the smoothed move u(x_{t-1}, x_t) (written as the decomposition
+     nearest the log's measured move, ``motion.nearest_decomposition``) by Eq. (1) of Geiser et al.,
      "Practical Implementation of FastSLAM for Forestry Robot" (ICAROB 2023) (``motion.
      sample_odometry``; the bursts only when the calibration fitted them, as the defensive
      ones are a proposal's tail, not a noise estimate), and each associated observation
@@ -57,7 +58,8 @@ from jaxslam import ekf, lineage, smoothing
 from jaxslam.calibration_residuals import NOISE_GROUPS, typical_stds
 from jaxslam.filter import estimate, run_filter
 from jaxslam.geometry import range_bearing, wrap_angle
-from jaxslam.motion import burst_variance_factor, odometry_from_poses, sample_odometry
+from jaxslam.motion import (burst_variance_factor, nearest_decomposition, odometry_from_poses,
+                            sample_odometry)
 from jaxslam.noise_scale import scaled_noise
 from jaxslam.types import FilterConfig, Observations, Params, default_params
 
@@ -69,13 +71,16 @@ class Solution(NamedTuple):
     """The log's smoothed solution a replicate is drawn around.
 
     path: (T, 3) poses after each step; start: (3,); landmark: (L, 2); landmark_of_obs:
-    (T, K) int index into ``landmark`` (-1: not associated, left as logged).
+    (T, K) int index into ``landmark`` (-1: not associated, left as logged); measured: (T, 3)
+    the log's measured moves, whose decomposition the replicate moves take
+    (``motion.nearest_decomposition``).
     """
 
     path: np.ndarray
     start: np.ndarray
     landmark: np.ndarray
     landmark_of_obs: np.ndarray
+    measured: np.ndarray
 
 
 class BootstrapIntervals(NamedTuple):
@@ -141,7 +146,7 @@ def log_solution(config: FilterConfig, key, params: Params, controls, observatio
                            f"around") from error
     return Solution(np.asarray(smoothed.path, np.float64), start,
                     np.asarray(smoothed.landmark, np.float64),
-                    np.asarray(smoothed.landmark_of_obs))
+                    np.asarray(smoothed.landmark_of_obs), np.asarray(controls, np.float64))
 
 
 def replicate_log(key, solution: Solution, params: Params, observations: Observations,
@@ -158,7 +163,9 @@ def replicate_log(key, solution: Solution, params: Params, observations: Observa
         motion_outlier_probability=jnp.zeros_like(params.motion_outlier_probability))
     noise = jax.tree.map(lambda leaf: jnp.asarray(leaf, dtype), noise)
     poses = jnp.asarray(np.concatenate([solution.start[None], solution.path]), dtype)
-    moves = odometry_from_poses(poses[:-1], poses[1:], noise.min_translation)  # (T, 3)
+    moves = nearest_decomposition(  # (T, 3), written as the log's measured moves are
+        odometry_from_poses(poses[:-1], poses[1:], noise.min_translation),
+        jnp.asarray(solution.measured, dtype))
     controls = sample_odometry(key_motion, moves, noise)
     ids = solution.landmark_of_obs
     points = jnp.asarray(solution.landmark[np.clip(ids, 0, None)] if len(solution.landmark)

@@ -29,7 +29,7 @@ import numpy as np
 from jaxslam import calibrate, smoothing
 from jaxslam.ekf import measurement_std
 from jaxslam.geometry import range_bearing, wrap_angle
-from jaxslam.motion import odometry_from_poses, odometry_std
+from jaxslam.motion import nearest_decomposition, odometry_from_poses, odometry_std
 from jaxslam.host import float64_on_host
 from jaxslam.types import Params
 
@@ -80,7 +80,10 @@ def _observation_residual(pose, point, z):
 def _grid_residuals(start, path, filter_path, points, z, odometry, params: Params):
     """Move samples (T, ...) and observation samples on the whole (T, K) grid."""
     poses = jnp.concatenate([start[None], path])
-    true_moves = odometry_from_poses(poses[:-1], poses[1:], params.min_translation)
+    # The decomposition nearest the measured move: a backward centimetre of smoother jitter
+    # is not an error of pi in rot1 and rot2 (``motion.nearest_decomposition``).
+    true_moves = nearest_decomposition(
+        odometry_from_poses(poses[:-1], poses[1:], params.min_translation), odometry)
     move_error, move_features = calibrate.motion_samples(true_moves, odometry)
     observation_error = _observation_residual(path[:, None], points, z)
     filter_error = _observation_residual(filter_path[:, None], points, z)

@@ -55,6 +55,23 @@ def odometry_from_poses(pose_prev, pose_next, min_translation):
     return odometry_from_relative(relative(pose_prev, pose_next), min_translation)
 
 
+def nearest_decomposition(moves, reference):
+    """The same moves (..., 3) written as the decomposition nearest ``reference`` (..., 3).
+
+    A relative pose has two exact decompositions: (rot1, trans, rot2) and, driving
+    backwards, (rot1 + pi, -trans, rot2 + pi) (``apply_odometry`` gives the same pose for
+    both). ``odometry_from_poses`` always returns trans >= 0, so a true move that drifts a
+    centimetre backwards while the measured move stood still or crept forwards comes out
+    with rot1 and rot2 about pi away from the measured ones: an error of pi that the
+    odometry never made. This returns, per move, the decomposition whose rot1 lies nearer
+    the reference's (the backward one where cos(rot1 - rot1_ref) < 0), rotations wrapped.
+    """
+    flip = jnp.cos(moves[..., 0] - reference[..., 0]) < 0.0
+    backward = jnp.stack([wrap_angle(moves[..., 0] + jnp.pi), -moves[..., 1],
+                          wrap_angle(moves[..., 2] + jnp.pi)], axis=-1)
+    return jnp.where(flip[..., None], backward, moves)
+
+
 def apply_odometry(pose, odometry):
     """Pose (..., 3) after the move (rot1, trans, rot2) (..., 3); the header's equations."""
     rot1, trans, rot2 = odometry[..., 0], odometry[..., 1], odometry[..., 2]

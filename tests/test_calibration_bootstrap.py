@@ -123,7 +123,10 @@ def _solution(num_steps=400, rng_seed=5):
     path = np.column_stack([xy, heading])
     landmark = rng.uniform(-20.0, 20.0, (30, 2)) + xy.mean(0)
     ids = rng.integers(-1, 30, (num_steps, 6))
-    return cb.Solution(path, np.zeros(3), landmark, ids)
+    poses = np.vstack([np.zeros(3), path])
+    measured = np.asarray(odometry_from_poses(jnp.asarray(poses[:-1]), jnp.asarray(poses[1:]),
+                                              0.01))
+    return cb.Solution(path, np.zeros(3), landmark, ids, measured)
 
 
 def _observations(solution, valid_share=0.9, seed=2):

@@ -114,6 +114,49 @@ def test_apply_odometry_jit_vmap(rng):
                                np.asarray(eager), atol=1e-12)
 
 
+def _nearest_reference(move, reference):
+    """NumPy float64: the backward form (rot1 + pi, -trans, rot2 + pi) where its rot1 is the
+    nearer to the reference's (cos of the forward difference < 0)."""
+    rot1, trans, rot2 = move
+    if np.cos(rot1 - reference[0]) < 0:
+        wrap = lambda a: (a + np.pi) % (2 * np.pi) - np.pi
+        return np.array([wrap(rot1 + np.pi), -trans, wrap(rot2 + np.pi)])
+    return np.array(move, np.float64)
+
+
+def test_nearest_decomposition_vs_reference_jit_vmap_and_same_pose(rng):
+    """Against a NumPy float64 reference (1e-12, x64 tests), eager / jit / vmap alike; both
+    forms take a pose to the same pose (``apply_odometry``); a backward centimetre under a
+    measured forward creep becomes a backward move with the measured rot1, not an error of
+    pi; moves already near the reference, and a reference at exactly 90 degrees (cos = 0),
+    are kept."""
+    moves = np.stack([rng.uniform(-np.pi, np.pi, 64), rng.uniform(0, 0.5, 64),
+                      rng.uniform(-np.pi, np.pi, 64)], 1)
+    reference = np.stack([rng.uniform(-np.pi, np.pi, 64), rng.uniform(-0.5, 0.5, 64),
+                          rng.uniform(-np.pi, np.pi, 64)], 1)
+    expected = np.stack([_nearest_reference(m, r) for m, r in zip(moves, reference)])
+    eager = np.asarray(motion.nearest_decomposition(jnp.asarray(moves), jnp.asarray(reference)))
+    for found in (eager, np.asarray(jax.jit(motion.nearest_decomposition)(moves, reference)),
+                  np.asarray(jax.vmap(motion.nearest_decomposition)(moves, reference))):
+        np.testing.assert_allclose(found[:, 1], expected[:, 1], atol=1e-12)
+        angle_close(found[:, 0], expected[:, 0], 1e-12)
+        angle_close(found[:, 2], expected[:, 2], 1e-12)
+    assert 0 < np.sum(eager[:, 1] < 0) < 64  # both branches taken
+    pose = rng.normal(size=(64, 3))
+    a = np.asarray(motion.apply_odometry(jnp.asarray(pose), jnp.asarray(moves)))
+    b = np.asarray(motion.apply_odometry(jnp.asarray(pose), jnp.asarray(eager)))
+    np.testing.assert_allclose(a[:, :2], b[:, :2], atol=1e-12)
+    angle_close(a[:, 2], b[:, 2], 1e-12)
+    # A robot that crept 2 cm forward (measured) while the true path went 1.5 cm back.
+    true = motion.odometry_from_poses(jnp.zeros(3), jnp.array([-0.015, 0.0, 0.01]), 0.01)
+    assert abs(abs(float(true[0])) - np.pi) < 1e-9  # the forward form: rot1 = pi
+    near = np.asarray(motion.nearest_decomposition(true, jnp.array([0.0, 0.02, 0.0])))
+    np.testing.assert_allclose(near, [0.0, -0.015, 0.01], atol=1e-12)
+    kept = np.asarray(motion.nearest_decomposition(jnp.array([0.3, 0.5, -0.1]),
+                                                   jnp.array([0.3 + np.pi / 2, 0.5, 0.0])))
+    np.testing.assert_allclose(kept, [0.3, 0.5, -0.1], atol=1e-12)
+
+
 def test_stationary_robot_jitter_is_a_pure_turn(params, rng):
     """Geiser et al. 2023 degeneracy: a parked robot whose pose jitters by millimetres (and a few mrad)
     must give rot1 = 0 (not the angle of the jitter) and small finite stds."""

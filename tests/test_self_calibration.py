@@ -15,7 +15,7 @@ from jaxslam.calibration_residuals import smoothed_residuals, typical_stds
 from jaxslam.detection_fit import CHI2_2DOF_999, GATE_LIMITS, detections, gate_with_radius
 from jaxslam.ekf import measurement_std
 from jaxslam.geometry import range_bearing, wrap_angle
-from jaxslam.motion import odometry_from_poses, odometry_std
+from jaxslam.motion import nearest_decomposition, odometry_from_poses, odometry_std
 from jaxslam.noise_fit import (host_motion_fit, host_observation_fit,
                                radius_noise_from_history,
                                radius_noise_relative_error, rescale)
@@ -356,8 +356,14 @@ def test_smoothed_residuals_are_the_library_models_per_sample():
     smoothed = smoothing.Smoothed(path, landmark, ids, np.zeros(1), 0, True)
     res = smoothed_residuals(start, smoothed, filter_path, odometry, z, params)
     poses = jnp.asarray(np.concatenate([start[None], path]))
-    true_moves = odometry_from_poses(poses[:-1], poses[1:], params.min_translation)
+    forward = odometry_from_poses(poses[:-1], poses[1:], params.min_translation)
+    # Each smoothed move in the decomposition nearest the measured one: the backward form
+    # where the forward rot1 lies more than 90 degrees from the measured rot1.
+    true_moves = nearest_decomposition(forward, jnp.asarray(odometry))
     np.testing.assert_allclose(res.true_moves, true_moves, atol=1e-12)
+    backward = np.cos(np.asarray(forward)[:, 0] - odometry[:, 0]) < 0
+    assert backward.any() and np.all(res.true_moves[backward, 1] < 0)
+    assert np.all(np.abs(np.asarray(wrap_angle(res.move_error[:, 0]))) <= np.pi / 2 + 1e-9)
     assert res.true_moves[4, 0] == 0.0
     errors, features = calibrate.motion_samples(true_moves, jnp.asarray(odometry))
     np.testing.assert_allclose(res.move_error, errors, atol=1e-12)
