@@ -16,10 +16,11 @@ both bias and spread on logs drawn from the calibrated model itself:
   2. replicate b draws a log of the same design, at EM's own noise (the calibrated settings
      with the likelihood search's scales divided out: the estimate that is bootstrapped):
      each move u*_t around the smoothed move u(x_{t-1}, x_t) (written as the decomposition
-     nearest the log's measured move, ``motion.nearest_decomposition``) by Eq. (1) of Geiser et al.,
-     "Practical Implementation of FastSLAM for Forestry Robot" (ICAROB 2023) (``motion.
-     sample_odometry``; the bursts only when the calibration fitted them, as the defensive
-     ones are a proposal's tail, not a noise estimate), and each associated observation
+     nearest the log's measured move, ``motion.nearest_decomposition``) by Eq. (1) of
+     Geiser et al., "Practical Implementation of FastSLAM for Forestry Robot" (ICAROB
+     2023) (``motion.sample_odometry``; the bursts only when the calibration fitted them, as
+     the defensive ones are a proposal's tail, not a noise estimate), and each associated
+     observation
      z*_tk = h(x_t, m_l(t,k)) + N(0, diag(sigma_r^2, sigma_b^2)) (``ekf.measurement_std``);
      observations the solution left unassociated and invalid rows stay as logged. The
      design (which landmark each step sees) is held fixed: a conditional bootstrap. The

@@ -4,7 +4,8 @@ Given the smoothed path x*_{0:T-1}, map m* and association j(t, k) of one EM ite
 (``smoothing.smooth_path``), the samples are
 
     moves:        the smoothed move  x*_{t-1} (-) x*_t  as (rot1, trans, rot2)
-                  (``motion.odometry_from_poses``) against the measured one u_t, its error
+                  (``motion.odometry_from_poses``, written as the decomposition nearest
+                  u_t: ``motion.nearest_decomposition``) against the measured one u_t, its error
                   and Eq. (1) regressors (``calibrate.motion_samples``) and Eq. (1) std
                   (``motion.odometry_std``) of Geiser et al., "Practical Implementation of
                   FastSLAM for Forestry Robot" (ICAROB 2023);
@@ -42,8 +43,9 @@ class Residuals(NamedTuple):
     """Samples of one smoothed solution (host NumPy, float64).
 
     Attributes:
-      true_moves: (T, 3) smoothed moves (rot1, trans, rot2); non-finite where the smoother
-        gave no pose.
+      true_moves: (T, 3) smoothed moves (rot1, trans, rot2), each the decomposition
+        nearest the measured move (trans < 0 where that is the backward one); non-finite
+        where the smoother gave no pose.
       measured_moves: (T, 3) the odometry u_t.
       move_error: (T, 3) true - measured, rotations wrapped.
       move_features: (3, T, 3) Eq. (1) regressors of rot1, trans, rot2 at the measured move.

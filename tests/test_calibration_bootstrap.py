@@ -213,7 +213,8 @@ def test_replicate_log_noise_has_the_model_std():
     z = np.asarray(replicate.z, np.float64)[t, k]
     sigma_range = 0.01 * predicted[:, 0] + 0.02
     sigma_bearing = 0.001 * predicted[:, 0] + 0.003
-    bearing_error = np.arctan2(np.sin(z[:, 1] - predicted[:, 1]), np.cos(z[:, 1] - predicted[:, 1]))
+    offset = z[:, 1] - predicted[:, 1]
+    bearing_error = np.arctan2(np.sin(offset), np.cos(offset))
     np.testing.assert_allclose(np.mean(((z[:, 0] - predicted[:, 0]) / sigma_range) ** 2), 1.0,
                                rtol=0.08)
     np.testing.assert_allclose(np.mean((bearing_error / sigma_bearing) ** 2), 1.0, rtol=0.08)
