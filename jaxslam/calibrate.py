@@ -53,6 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxslam.geometry import wrap_angle
+from jaxslam.motion import nearest_decomposition
 from jaxslam.nonnegative import fit_nonnegative
 from jaxslam.types import Params
 
@@ -289,10 +290,15 @@ def _check_pairs(name, true, measured, width, valid):
 def motion_samples(true_moves, measured_moves):
     """Errors (S, 3) = true - measured (rotations wrapped) and features (3, S, 3).
 
+    Each true move is first written as its decomposition nearest the measured one
+    (``motion.nearest_decomposition``): a true move that went a centimetre backwards while
+    the measured one crept forwards is an error of a few centimetres, not of pi in rot1 and
+    rot2 (``odometry_from_poses`` always writes trans >= 0).
+
     features[i] are the Eq. (1) regressors of component i at the measured move:
     rot1 (|trans|, |rot1|, 1); trans (|trans|, |rot1| + |rot2|, 1); rot2 (|trans|, |rot2|, 1).
     """
-    errors = true_moves - measured_moves
+    errors = nearest_decomposition(true_moves, measured_moves) - measured_moves
     errors = errors.at[:, 0].set(wrap_angle(errors[:, 0])).at[:, 2].set(wrap_angle(errors[:, 2]))
     abs_rot1, abs_trans, abs_rot2 = (jnp.abs(measured_moves[:, i]) for i in range(3))
     ones = jnp.ones_like(abs_trans)

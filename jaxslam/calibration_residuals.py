@@ -4,9 +4,9 @@ Given the smoothed path x*_{0:T-1}, map m* and association j(t, k) of one EM ite
 (``smoothing.smooth_path``), the samples are
 
     moves:        the smoothed move  x*_{t-1} (-) x*_t  as (rot1, trans, rot2)
-                  (``motion.odometry_from_poses``, written as the decomposition nearest
-                  u_t: ``motion.nearest_decomposition``) against the measured one u_t, its error
-                  and Eq. (1) regressors (``calibrate.motion_samples``) and Eq. (1) std
+                  (``motion.odometry_from_poses``) against the measured one u_t, its error
+                  (of the decomposition nearest u_t) and Eq. (1) regressors
+                  (``calibrate.motion_samples``) and Eq. (1) std
                   (``motion.odometry_std``) of Geiser et al., "Practical Implementation of
                   FastSLAM for Forestry Robot" (ICAROB 2023);
     observations: h(x*_t, m*_j) - z_tk and h(x_t, m*_j) - z_tk at the filter's own pose x_t
@@ -30,7 +30,7 @@ import numpy as np
 from jaxslam import calibrate, smoothing
 from jaxslam.ekf import measurement_std
 from jaxslam.geometry import range_bearing, wrap_angle
-from jaxslam.motion import nearest_decomposition, odometry_from_poses, odometry_std
+from jaxslam.motion import odometry_from_poses, odometry_std
 from jaxslam.host import float64_on_host
 from jaxslam.types import Params
 
@@ -43,11 +43,11 @@ class Residuals(NamedTuple):
     """Samples of one smoothed solution (host NumPy, float64).
 
     Attributes:
-      true_moves: (T, 3) smoothed moves (rot1, trans, rot2), each the decomposition
-        nearest the measured move (trans < 0 where that is the backward one); non-finite
-        where the smoother gave no pose.
+      true_moves: (T, 3) smoothed moves (rot1, trans, rot2); non-finite where the smoother
+        gave no pose.
       measured_moves: (T, 3) the odometry u_t.
-      move_error: (T, 3) true - measured, rotations wrapped.
+      move_error: (T, 3) true - measured, the true move in its decomposition nearest the
+        measured one (``calibrate.motion_samples``), rotations wrapped.
       move_features: (3, T, 3) Eq. (1) regressors of rot1, trans, rot2 at the measured move.
       move_std: (T, 3) Eq. (1) std of the measured moves with the iteration's ``Params``.
       measured_z: (S, 2) the associated observations z_tk.
@@ -82,10 +82,7 @@ def _observation_residual(pose, point, z):
 def _grid_residuals(start, path, filter_path, points, z, odometry, params: Params):
     """Move samples (T, ...) and observation samples on the whole (T, K) grid."""
     poses = jnp.concatenate([start[None], path])
-    # The decomposition nearest the measured move: a backward centimetre of smoother jitter
-    # is not an error of pi in rot1 and rot2 (``motion.nearest_decomposition``).
-    true_moves = nearest_decomposition(
-        odometry_from_poses(poses[:-1], poses[1:], params.min_translation), odometry)
+    true_moves = odometry_from_poses(poses[:-1], poses[1:], params.min_translation)
     move_error, move_features = calibrate.motion_samples(true_moves, odometry)
     observation_error = _observation_residual(path[:, None], points, z)
     filter_error = _observation_residual(filter_path[:, None], points, z)

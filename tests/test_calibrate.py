@@ -244,6 +244,23 @@ def test_angle_errors_wrap():
     np.testing.assert_allclose(errors[:, 2], -0.1, atol=1e-12)
 
 
+def test_motion_errors_take_the_decomposition_nearest_the_measured_move():
+    """A true move 1.5 cm backwards (``odometry_from_poses`` writes it rot1 = pi, trans
+    0.015, rot2 = -pi + 0.01) under a measured 2 cm forward creep: the errors are those of
+    (0, -0.015, 0.01), not pi in rot1 and rot2; a move near its measurement is unchanged;
+    eager and jit agree."""
+    from jaxslam.motion import odometry_from_poses
+
+    true = odometry_from_poses(jnp.zeros((2, 3)), jnp.array([[-0.015, 0.0, 0.01],
+                                                             [0.5, 0.01, 0.02]]), 0.01)
+    measured = jnp.array([[0.0, 0.02, 0.0], [0.01, 0.5, 0.0]])
+    for samples in (calibrate.motion_samples, jax.jit(calibrate.motion_samples)):
+        errors, features = samples(true, measured)
+        np.testing.assert_allclose(errors[0], [0.0, -0.035, 0.01], atol=1e-12)
+        np.testing.assert_allclose(errors[1], np.asarray(true[1] - measured[1]), atol=1e-12)
+        np.testing.assert_allclose(features[1][0], [0.02, 0.0, 1.0], atol=1e-12)  # measured
+
+
 # ---------------------------------------------------------------------------------------------
 # Bad input
 

@@ -356,13 +356,16 @@ def test_smoothed_residuals_are_the_library_models_per_sample():
     smoothed = smoothing.Smoothed(path, landmark, ids, np.zeros(1), 0, True)
     res = smoothed_residuals(start, smoothed, filter_path, odometry, z, params)
     poses = jnp.asarray(np.concatenate([start[None], path]))
-    forward = odometry_from_poses(poses[:-1], poses[1:], params.min_translation)
-    # Each smoothed move in the decomposition nearest the measured one: the backward form
-    # where the forward rot1 lies more than 90 degrees from the measured rot1.
-    true_moves = nearest_decomposition(forward, jnp.asarray(odometry))
+    true_moves = odometry_from_poses(poses[:-1], poses[1:], params.min_translation)
     np.testing.assert_allclose(res.true_moves, true_moves, atol=1e-12)
-    backward = np.cos(np.asarray(forward)[:, 0] - odometry[:, 0]) < 0
-    assert backward.any() and np.all(res.true_moves[backward, 1] < 0)
+    # The errors take each smoothed move in the decomposition nearest the measured one (the
+    # backward form where the forward rot1 lies more than 90 degrees from the measured).
+    backward = np.cos(np.asarray(true_moves)[:, 0] - odometry[:, 0]) < 0
+    assert backward.any()
+    nearest = np.asarray(nearest_decomposition(true_moves, jnp.asarray(odometry)))
+    np.testing.assert_allclose(res.move_error[:, 1], nearest[:, 1] - odometry[:, 1],
+                               atol=1e-12)
+    assert np.all(res.move_error[backward, 1] < -odometry[backward, 1] + 1e-12)
     assert np.all(np.abs(np.asarray(wrap_angle(res.move_error[:, 0]))) <= np.pi / 2 + 1e-9)
     assert res.true_moves[4, 0] == 0.0
     errors, features = calibrate.motion_samples(true_moves, jnp.asarray(odometry))
