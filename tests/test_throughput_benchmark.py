@@ -22,6 +22,10 @@ def test_tiny_single_and_batched_rows(load_benchmark, tmp_path):
     reference = throughput.PYTHONROBOTICS_STEP_S
     assert math.isclose(single["step_ms"], 1e3 * single["run_s"] / 5)
     assert math.isclose(single["ratio"], reference / (single["run_s"] / 5))
+    # The fastest of the timed calls can be no slower than their median.
+    assert single["repeats"] == 5
+    assert 0 < single["step_ms_fastest"] <= single["step_ms"]
+    assert math.isclose(single["ratio_fastest"], reference / (single["step_ms_fastest"] / 1e3))
     assert math.isclose(batched["run_step_us"], 1e6 * batched["run_s"] / 10)
     assert math.isclose(batched["particle_steps_per_s"], 2 * 100 * 5 / batched["run_s"])
 
@@ -45,6 +49,18 @@ def test_single_case_at_several_particle_counts(load_benchmark):
                             "--single-particles", "1", "4"])
     assert [(row["case"], row["P"]) for row in rows] == [("single", 1), ("single", 4)]
     assert all(math.isfinite(row["step_ms"]) and row["step_ms"] > 0 for row in rows)
+
+
+def test_repeats_sets_the_single_case_calls_and_is_checked(load_benchmark, capsys):
+    """``--repeats`` times the single run that many times; 0 is refused by name."""
+    throughput = load_benchmark("throughput")
+    (row,) = throughput.main(["--proposal", "motion", "--cases", "single", "--steps", "3",
+                              "--repeats", "2", "--single-particles", "2"])
+    assert row["repeats"] == 2 and 0 < row["step_ms_fastest"] <= row["step_ms"]
+    with pytest.raises(SystemExit) as exit_:
+        throughput.main(["--cases", "single", "--repeats", "0"])
+    assert exit_.value.code == 2
+    assert "--repeats must be positive integers" in capsys.readouterr().err
 
 
 def test_bad_particle_count_is_refused_by_name(load_benchmark, capsys):
