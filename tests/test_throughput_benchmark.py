@@ -4,6 +4,7 @@ The full-size figures are the script's own job (issue 20; docs/results.md)."""
 import json
 import math
 
+import numpy as np
 import pytest
 
 
@@ -51,12 +52,29 @@ def test_single_case_at_several_particle_counts(load_benchmark):
     assert all(math.isfinite(row["step_ms"]) and row["step_ms"] > 0 for row in rows)
 
 
-def test_repeats_sets_the_single_case_calls_and_is_checked(load_benchmark, capsys):
-    """``--repeats`` times the single run that many times; 0 is refused by name."""
+def test_single_row_takes_the_median_and_the_fastest_of_the_timed_calls(load_benchmark,
+                                                                         monkeypatch):
+    """With the calls' times fixed (0.5, 0.1, 0.3, 0.2 s for a 4-step run), the row's step
+    time is their median over T (62.5 ms) and its fastest step the minimum over T (25 ms),
+    and ``--repeats`` reaches the timer."""
     throughput = load_benchmark("throughput")
-    (row,) = throughput.main(["--proposal", "motion", "--cases", "single", "--steps", "3",
-                              "--repeats", "2", "--single-particles", "2"])
-    assert row["repeats"] == 2 and 0 < row["step_ms_fastest"] <= row["step_ms"]
+    asked = []
+
+    def fixed_times(fn, *args, repeats=3):
+        asked.append(repeats)
+        return 2.0, np.array([0.5, 0.1, 0.3, 0.2]), None
+
+    monkeypatch.setattr(throughput, "_timed", fixed_times)
+    (row,) = throughput.main(["--proposal", "motion", "--cases", "single", "--steps", "4",
+                              "--repeats", "4", "--single-particles", "2"])
+    assert asked == [4] and row["repeats"] == 4
+    assert math.isclose(row["step_ms"], 62.5) and math.isclose(row["step_ms_fastest"], 25.0)
+    assert math.isclose(row["ratio_fastest"], throughput.PYTHONROBOTICS_STEP_S / 0.025)
+    assert math.isclose(row["compile_s"], 2.0)
+
+
+def test_repeats_must_be_positive(load_benchmark, capsys):
+    throughput = load_benchmark("throughput")
     with pytest.raises(SystemExit) as exit_:
         throughput.main(["--cases", "single", "--repeats", "0"])
     assert exit_.value.code == 2
