@@ -104,9 +104,10 @@ def bench_single(proposal, num_steps, repeats=5, num_particles=100):
     like and says so).
 
     The run is called ``repeats`` times: ``step_ms`` is from the median of the calls' times,
-    ``step_ms_fastest`` from the fastest call's. On a shared VM a call is slowed, never sped up, by whatever else the
-    host runs (the two can differ by 1.5x within one invocation on the project's 2-core
-    machine), so the fastest call is the steadier figure to compare across invocations."""
+    ``step_ms_fastest`` from the fastest call's. On a shared VM a call is slowed, never sped
+    up, by whatever else the host runs (the two can differ by 1.5x within one invocation on
+    the project's 2-core machine), so the fastest call is the steadier figure to compare
+    across invocations."""
     from jaxslam.filter import make_filter, run_filter
     from jaxslam.types import default_params
 
