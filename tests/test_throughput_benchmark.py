@@ -73,17 +73,13 @@ def test_single_row_takes_the_median_and_the_fastest_of_the_timed_calls(load_ben
     assert math.isclose(row["compile_s"], 2.0)
 
 
-def test_repeats_must_be_positive(load_benchmark, capsys):
+@pytest.mark.parametrize("arguments, message", [
+    (["--repeats", "0"], "--repeats must be positive integers"),
+    (["--single-particles", "0"], "every particle count must be a positive integer"),
+])
+def test_bad_arguments_are_refused_by_name(load_benchmark, capsys, arguments, message):
     throughput = load_benchmark("throughput")
     with pytest.raises(SystemExit) as exit_:
-        throughput.main(["--cases", "single", "--repeats", "0"])
+        throughput.main(["--cases", "single", *arguments])
     assert exit_.value.code == 2
-    assert "--repeats must be positive integers" in capsys.readouterr().err
-
-
-def test_bad_particle_count_is_refused_by_name(load_benchmark, capsys):
-    throughput = load_benchmark("throughput")
-    with pytest.raises(SystemExit) as exit_:
-        throughput.main(["--cases", "single", "--single-particles", "0"])
-    assert exit_.value.code == 2
-    assert "every particle count must be a positive integer" in capsys.readouterr().err
+    assert message in capsys.readouterr().err
