@@ -17,21 +17,30 @@ dominate a mean square and partly cancel in the next step):
        g(n) = V(n) / (n V(1)),  V(n) the robust variance of e summed over consecutive,
                                  non-overlapping windows of n moves.
 
-   White errors give g(n) = 1 at every n; a drift gives g(n) > 1, growing with n.
+   Gaussian white errors give g(n) = 1 at every n; a drift gives g(n) > 1, growing with n.
+   Spikes raise g as well (V(1) sees the core, an n-step sum also the spikes in it), so g is
+   printed beside the g of the same errors in a random order (white, the same values), and
+   their ratio is the drift's part.
 2. **The calibrated model against the log's own smoothed drift** (no ground truth): the
    calibrated filter's best history smoothed with its association fixed
    (``calibration_bootstrap.log_solution``) gives the heading residuals
    e_t = (rot1 + rot2)_measured - wrap(theta*_t - theta*_{t-1}) and their V_log(n). Replicate
    logs drawn from the calibrated model itself around that solution
-   (``calibration_bootstrap.replicate_log``, its fitted bursts included) and smoothed with
-   the same association give V_rep(n), averaged over the replicates; then
+   (``calibration_bootstrap.replicate_log``, bursts only where fitted) and smoothed with
+   the same association (started from the solution, their own truth, where the log's
+   smoothing starts from the filter's history) give V_rep(n), averaged over the replicates;
+   then
 
        kappa(n) = V_log(n) / V_rep(n).
 
    A smoothed path between two sightings spreads the correction over the moves in between,
    which correlates its residuals even when the odometry's errors are white; the replicates
    are smoothed the same way, so kappa(n) = 1 where the log drifts over n steps as the
-   calibrated white model would, and kappa(n) > 1 where it drifts more.
+   calibrated white model would, and kappa(n) > 1 where it drifts more. The replicates keep
+   the log's association and are drawn around its solution, so they carry none of the log's
+   wrong matches (as in ``calibration_bootstrap``): kappa leans low. On three simulated logs
+   drawn from the model itself, kappa(1) came out 0.62, 0.84 and 1.08
+   (``tests/test_motion_drift_experiment.py``).
 
 With ``--heading-scales``, each MRCLAM robot's calibrated Params are also run with their
 heading terms (rot1 and rot2 coefficients, ``association_heading_std``) times each scale,
@@ -39,17 +48,22 @@ over filter keys 100, 101, ... (Vicon scores: dead reckoning ATE / filter ATE).
 
     python experiments/motion_drift.py --mrclam-robots 1 2 3 4 5 [--seed 0] [--replicates 3]
         [--heading-scales 1 1.4 2 3] [--filter-keys 6]
+    python experiments/motion_drift.py --mrclam-robots 1 2 3 4 5 --truth-only
     python experiments/motion_drift.py --victoria-park-params FILE [--observation-scale 8]
 
 ``FILE`` is the ``calibrated_params.toml`` that ``experiments/victoria_park.py`` writes;
-``--observation-scale`` divides the observation noise by the likelihood search's factor
-(printed by that script), so that the replicates are drawn at EM's own sensor noise.
+``--observation-scale`` divides the model's observation noise by the likelihood search's
+factor (printed by that script), so that the replicates are drawn, and both the log and the
+replicates smoothed, at EM's own sensor noise; the filter that finds the log's association
+keeps the file's Params. Columns with fewer than ``MIN_WINDOWS`` windows are left out; a
+variance from 30-50 windows is uncertain by 33-43 % (one standard error).
 """
 from __future__ import annotations
 
 import argparse
 import pathlib
 import sys
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -58,15 +72,34 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam import metrics, pipeline, smoothing  # noqa: E402
+from jaxslam.calibrate import MAD_TO_STD  # noqa: E402
 from jaxslam.calibration_bootstrap import log_solution, replicate_log  # noqa: E402
 from jaxslam.datasets.odometry import odometry_path  # noqa: E402
 from jaxslam.filter import run_filter  # noqa: E402
+from jaxslam.self_calibration import group_scales  # noqa: E402
 from jaxslam.types import FilterConfig  # noqa: E402
 
 WINDOWS = (1, 2, 5, 10, 20, 50, 100, 200)
-MIN_WINDOWS = 30  # fewer n-step windows than this in the log: the column is not printed
-MAD_TO_STD = 1.4826  # std of a normal over its median absolute deviation
+# Fewer n-step windows than this in the log: the column is not printed. A variance from the
+# MAD of N window sums has a relative standard error of about 2.33 / sqrt(N) for a normal
+# law (the MAD's asymptotic variance, 1.36 sigma^2 / N): 40 % at N = 34, 16 % at N = 200.
+MIN_WINDOWS = 30
 MRCLAM = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "mrclam1"
+
+
+class Drift(NamedTuple):
+    """The module docstring's item 2.
+
+    log_variance: (W,) V_log(n), the log's smoothed heading residuals; replicate_variance:
+    (W, R) V_rep(n) of each replicate. ``kappa`` is their ratio (W,).
+    """
+
+    log_variance: np.ndarray
+    replicate_variance: np.ndarray
+
+    @property
+    def kappa(self) -> np.ndarray:
+        return self.log_variance / self.replicate_variance.mean(axis=-1)
 
 
 def wrap(angle):
@@ -104,6 +137,15 @@ def growth(errors, windows=WINDOWS) -> np.ndarray:
     return variance / (np.asarray(windows, np.float64) * single)
 
 
+def shuffled_growth(errors, windows=WINDOWS, seed: int = 0) -> np.ndarray:
+    """(W,) g(n) of ``errors`` (T,) in a random order (``numpy.random.default_rng(seed)``):
+    the same values made white. With spikes g exceeds 1 even for white errors (V(1) sees
+    the core, an n-step sum also the spikes it holds); g / shuffled g leaves the order's
+    part, the drift."""
+    return growth(np.random.default_rng(seed).permutation(np.asarray(errors, np.float64)),
+                  windows)
+
+
 def heading_errors(controls, start, poses) -> np.ndarray:
     """(T,) measured heading change of each move (rot1 + rot2 of ``controls`` (T, 3)) minus
     the heading change of ``poses`` (T, 3), the pose after each move, from ``start`` (3,);
@@ -117,25 +159,44 @@ def heading_errors(controls, start, poses) -> np.ndarray:
     return wrap(controls[:, 0] + controls[:, 2] - np.diff(poses[:, 2]))
 
 
-def drift_against_model(config: FilterConfig, params, controls, observations, start,
-                        replicates: int, windows=WINDOWS, seed: int = 0):
-    """(V_log (W,), V_rep (W, R)) of the module docstring's item 2: the log's smoothed
-    heading residuals and those of ``replicates`` logs drawn from ``params``."""
+def _smooth(start, path, moves, z, landmark_of_obs, params):
+    return smoothing.smooth_path(start, path, moves, np.asarray(z, np.float64),
+                                 landmark_of_obs, params,
+                                 calibrate_rounds=smoothing.VARIANCE_ROUNDS)
+
+
+def drift_against_model(config: FilterConfig, filter_params, model_params, controls,
+                        observations, start, replicates: int, windows=WINDOWS,
+                        seed: int = 0, bursts: bool = True) -> Drift:
+    """``Drift`` of a log (controls (T, 3), ``Observations``, start (3,)).
+
+    The log's solution: the filter run with ``filter_params`` (key ``seed``), its best
+    history smoothed with its association fixed (``calibration_bootstrap.log_solution``),
+    smoothed again with ``model_params`` when they differ. Each replicate r is drawn from
+    ``model_params`` around that solution (key fold_in(PRNGKey(seed), 1000 + r); its bursts
+    drawn only with ``bursts``, which should say whether the calibration fitted them,
+    ``CalibrationInfo.bursts_fitted``) and smoothed with ``model_params`` from the
+    solution's path, its own truth; the log's smoothing starts from the filter's history,
+    so the replicates start nearer their optimum.
+    """
     start = np.asarray(start, np.float64)
-    solution = log_solution(config, jax.random.PRNGKey(seed), params, controls, observations,
-                            start)
+    solution = log_solution(config, jax.random.PRNGKey(seed), filter_params, controls,
+                            observations, start)
+    if model_params is not filter_params:
+        smoothed = _smooth(start, solution.path, np.asarray(controls, np.float64),
+                           observations.z, solution.landmark_of_obs, model_params)
+        solution = solution._replace(path=np.asarray(smoothed.path, np.float64),
+                                     landmark=np.asarray(smoothed.landmark, np.float64))
     log_variance = windowed_variance(heading_errors(controls, start, solution.path), windows)
     replicate_variance = []
     for index in range(replicates):
-        moves, drawn = replicate_log(jax.random.PRNGKey(1000 + index), solution, params,
-                                     observations, bursts=True)
-        smoothed = smoothing.smooth_path(start, solution.path, moves,
-                                         np.asarray(drawn.z, np.float64),
-                                         solution.landmark_of_obs, params,
-                                         calibrate_rounds=smoothing.VARIANCE_ROUNDS)
+        key = jax.random.fold_in(jax.random.PRNGKey(seed), 1000 + index)
+        moves, drawn = replicate_log(key, solution, model_params, observations, bursts)
+        smoothed = _smooth(start, solution.path, moves, drawn.z, solution.landmark_of_obs,
+                           model_params)
         replicate_variance.append(windowed_variance(
             heading_errors(moves, start, smoothed.path), windows))
-    return log_variance, np.stack(replicate_variance, axis=-1)
+    return Drift(log_variance, np.stack(replicate_variance, axis=-1))
 
 
 def _columns(values, windows, steps: int, digits: int = 2) -> str:
@@ -154,54 +215,80 @@ def with_heading_scale(params, scale: float):
                            association_heading_std=params.association_heading_std * scale)
 
 
-def mrclam_robot(data, robot: int, seed: int, replicates: int, scales, filter_keys: int):
-    """Calibrate MRCLAM robot ``robot`` (``pipeline.filter_log``, key ``seed``) and print
-    both measures and, for each of ``scales``, the heading-scaled filter's ATE ratios."""
+def mrclam_robot_log(data, robot: int):
+    """(``RobotLog`` of MRCLAM robot ``robot``, FilterConfig: P = 100, 64 slots)."""
     from jaxslam.datasets.mrclam import read_mrclam
     from jaxslam.datasets.mrclam_convert import DEFAULT_MAX_OBS, mrclam_log, mrclam_steps
 
     raw = read_mrclam(data, robot)
-    log = mrclam_log(raw, mrclam_steps(raw, DEFAULT_MAX_OBS))
     config = FilterConfig(num_particles=100, max_landmarks=64, max_obs=DEFAULT_MAX_OBS)
+    return mrclam_log(raw, mrclam_steps(raw, DEFAULT_MAX_OBS)), config
+
+
+def print_truth_growth(log, label: str) -> None:
+    """Item 1 for a log with ``truth_pose`` (T, 3): g(n), its shuffled twin and their ratio."""
+    truth = np.asarray(log.truth_pose, np.float64)
+    errors = heading_errors(log.controls, log.initial_pose, truth)
+    steps = len(truth)
+    g, white = growth(errors), shuffled_growth(errors)
+    print(f"{label}: one move's robust heading std "
+          f"{np.sqrt(windowed_variance(errors, (1,))[0]):.4f} rad; g(n) "
+          f"{_columns(g, WINDOWS, steps)}; shuffled {_columns(white, WINDOWS, steps)}; "
+          f"ratio {_columns(g / white, WINDOWS, steps)}", flush=True)
+
+
+def heading_scale_ratios(params, inputs, truth, dead_reckoning_ate: float, scale: float,
+                         keys) -> tuple[list, list]:
+    """(dead reckoning / filter ATE, final landmarks) of one run a key in ``keys`` with
+    ``with_heading_scale(params, scale)``; inputs = ``pipeline.log_inputs``' tuple."""
+    config, controls, obs, start = inputs
+    ratios, kept = [], []
+    for key in keys:
+        _, trace = run_filter(config, jax.random.PRNGKey(key), with_heading_scale(params, scale),
+                              controls, obs, jnp.asarray(start, jnp.float32))
+        ate = metrics.ate_rmse(np.asarray(trace.mean_pose, np.float64), truth)
+        ratios.append(dead_reckoning_ate / ate)
+        kept.append(int(np.asarray(trace.num_landmarks)[-1]))
+    return ratios, kept
+
+
+def mrclam_robot(data, robot: int, seed: int, replicates: int, scales, filter_keys: int):
+    """Calibrate MRCLAM robot ``robot`` (``pipeline.filter_log``, key ``seed``) and print
+    both measures and, for each of ``scales``, the heading-scaled filter's ATE ratios."""
+    log, config = mrclam_robot_log(data, robot)
+    print_truth_growth(log, f"robot {robot}, Vicon")
     run = pipeline.filter_log(log, config, key=jax.random.PRNGKey(seed), calibrate=True)
-    config, controls, obs, start = pipeline.log_inputs(log, config)
+    inputs = pipeline.log_inputs(log, config)
+    config, controls, obs, start = inputs
     truth = np.asarray(log.truth_pose, np.float64)
     steps = len(truth)
-    truth_errors = heading_errors(controls, start, truth)
-    log_variance, replicate_variance = drift_against_model(config, run.params, controls, obs,
-                                                           start, replicates, seed=seed)
-    kappa = log_variance / replicate_variance.mean(axis=-1)
-    print(f"robot {robot}: T={steps}, calibrated heading terms rot1 "
-          f"{_coefficients(run.params.rot1_noise)}, rot2 "
+    drift = drift_against_model(config, run.params, run.params, controls, obs, start,
+                                replicates, seed=seed,
+                                bursts=bool(run.calibration.bursts_fitted))
+    print(f"  calibrated heading terms rot1 {_coefficients(run.params.rot1_noise)}, rot2 "
           f"{_coefficients(run.params.rot2_noise)}, bursts "
           f"{float(run.params.motion_outlier_probability):.2f} x "
-          f"{float(run.params.motion_outlier_scale):.2f}", flush=True)
-    print(f"  Vicon: one move's robust heading std {np.sqrt(windowed_variance(truth_errors, (1,))[0]):.4f}"
-          f" rad; growth g(n) {_columns(growth(truth_errors), WINDOWS, steps)}")
-    print(f"  log alone: smoothed residuals' robust std {np.sqrt(log_variance[0]):.4f} rad "
-          f"(replicates {np.sqrt(replicate_variance[0].mean()):.4f}); kappa(n) "
-          f"{_columns(kappa, WINDOWS, steps)}", flush=True)
+          f"{float(run.params.motion_outlier_scale):.2f}; the likelihood's motion x"
+          f"{group_scales(run.calibration)[0]:g} (in these Params)")
+    print(f"  log alone: smoothed residuals' robust std {np.sqrt(drift.log_variance[0]):.4f}"
+          f" rad (replicates {np.sqrt(drift.replicate_variance[0].mean()):.4f}); kappa(n) "
+          f"{_columns(drift.kappa, WINDOWS, steps)}", flush=True)
     if not scales:
         return
     dead_reckoning = np.asarray(odometry_path(log.controls, log.initial_pose))[-steps:]
     dr_ate = metrics.ate_rmse(dead_reckoning, truth)
     for scale in scales:
-        ratios, kept = [], []
-        for key in range(100, 100 + filter_keys):
-            _, trace = run_filter(config, jax.random.PRNGKey(key),
-                                  with_heading_scale(run.params, scale), controls, obs,
-                                  jnp.asarray(start, jnp.float32))
-            ratios.append(dr_ate / metrics.ate_rmse(np.asarray(trace.mean_pose, np.float64),
-                                                    truth))
-            kept.append(int(np.asarray(trace.num_landmarks)[-1]))
+        ratios, kept = heading_scale_ratios(run.params, inputs, truth, dr_ate, scale,
+                                            range(100, 100 + filter_keys))
         print(f"  heading x{scale:g}: dead reckoning / filter ATE median "
               f"{np.median(ratios):.2f}x ({' '.join(f'{r:.2f}' for r in ratios)}); "
               f"landmarks {min(kept)}-{max(kept)}", flush=True)
 
 
 def victoria_park(params_file: str, observation_scale: float, replicates: int, seed: int):
-    """Item 2 on Victoria Park with the Params of ``params_file`` (the calibrated set's
-    log: its detector, its constant laser steering bias)."""
+    """Item 2 on Victoria Park: the filter with the Params of ``params_file`` (the
+    calibrated set's log: its detector, its constant laser steering bias), the model with
+    their observation noise divided by ``observation_scale``."""
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
     import victoria_park_pipeline as vps
     from jaxslam.datasets import victoria_park as vpm
@@ -211,16 +298,16 @@ def victoria_park(params_file: str, observation_scale: float, replicates: int, s
     config = vps.settings_config(settings)
     log, _, _ = vps.calibration_log(data, settings, config)
     params = pipeline.load_params(params_file, config)
-    params = params._replace(range_noise=params.range_noise / observation_scale,
-                             bearing_noise=params.bearing_noise / observation_scale)
+    model = params._replace(range_noise=params.range_noise / observation_scale,
+                            bearing_noise=params.bearing_noise / observation_scale)
     config, controls, obs, start = pipeline.log_inputs(log, config)
-    log_variance, replicate_variance = drift_against_model(config, params, controls, obs,
-                                                           start, replicates, seed=seed)
+    drift = drift_against_model(config, params, model, controls, obs, start, replicates,
+                                seed=seed)
     steps = int(np.asarray(controls).shape[0])
-    print(f"Victoria Park: T={steps}, observation noise / {observation_scale:g}; smoothed "
-          f"residuals' robust std {np.sqrt(log_variance[0]):.5f} rad (replicates "
-          f"{np.sqrt(replicate_variance[0].mean()):.5f}); kappa(n) "
-          f"{_columns(log_variance / replicate_variance.mean(axis=-1), WINDOWS, steps)}")
+    print(f"Victoria Park: T={steps}, model's observation noise / {observation_scale:g}; "
+          f"smoothed residuals' robust std {np.sqrt(drift.log_variance[0]):.5f} rad "
+          f"(replicates {np.sqrt(drift.replicate_variance[0].mean()):.5f}); kappa(n) "
+          f"{_columns(drift.kappa, WINDOWS, steps)}", flush=True)
 
 
 def main(argv=None):
@@ -233,6 +320,8 @@ def main(argv=None):
     parser.add_argument("--replicates", type=int, default=3)
     parser.add_argument("--heading-scales", type=float, nargs="*", default=[])
     parser.add_argument("--filter-keys", type=int, default=6)
+    parser.add_argument("--truth-only", action="store_true",
+                        help="MRCLAM: only the growth against Vicon (item 1; seconds)")
     args = parser.parse_args(argv)
     if not args.mrclam_robots and args.victoria_park_params is None:
         parser.error("name --mrclam-robots and/or --victoria-park-params")
@@ -240,7 +329,15 @@ def main(argv=None):
         parser.error(f"--replicates {args.replicates}: at least 1")
     if args.observation_scale <= 0.0:
         parser.error(f"--observation-scale {args.observation_scale}: a positive factor")
+    if any(scale <= 0.0 for scale in args.heading_scales):
+        parser.error(f"--heading-scales {args.heading_scales}: positive factors")
+    if args.heading_scales and args.filter_keys < 1:
+        parser.error(f"--filter-keys {args.filter_keys}: at least 1 with --heading-scales")
     for robot in args.mrclam_robots:
+        if args.truth_only:
+            print_truth_growth(mrclam_robot_log(args.mrclam_data, robot)[0],
+                               f"robot {robot}, Vicon")
+            continue
         mrclam_robot(args.mrclam_data, robot, args.seed, args.replicates, args.heading_scales,
                      args.filter_keys)
     if args.victoria_park_params is not None:

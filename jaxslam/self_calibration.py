@@ -166,8 +166,8 @@ class CalibrationInfo(NamedTuple):
         self_calibration, "Bursts fitted to the shrunk residuals").
         ``calibration_bootstrap.bootstrap_intervals`` states intervals that count EM's bias
         as well, at the cost of B more calibrations: on those logs they held the truth in
-        62 of 64 (motion) and 62 of 64 (sensor) cases with B = 20 (measured before the
-        move errors took the nearest decomposition, 9184f50; not rerun since). "radius": a fitted
+        62 of 64 (motion) and 62 of 64 (sensor) cases with B = 20 (rerun after the move
+        errors took the nearest decomposition, 9184f50: the same counts). "radius": a fitted
         ``radius_noise``'s relative error, by a bootstrap over the landmarks whose radii it used
         (``noise_fit.radius_noise_relative_error``; inf with a single such landmark). Empty
         when the starting settings are returned.
