@@ -50,6 +50,7 @@ over filter keys 100, 101, ... (Vicon scores: dead reckoning ATE / filter ATE).
         [--heading-scales 1 1.4 2 3] [--filter-keys 6]
     python experiments/motion_drift.py --mrclam-robots 1 2 3 4 5 --truth-only
     python experiments/motion_drift.py --victoria-park-params FILE [--observation-scale 8]
+        [--steering-bias constant|profile]
 
 ``FILE`` is the ``calibrated_params.toml`` that ``experiments/victoria_park.py`` writes;
 ``--observation-scale`` divides the model's observation noise by the likelihood search's
@@ -285,16 +286,19 @@ def mrclam_robot(data, robot: int, seed: int, replicates: int, scales, filter_ke
               f"landmarks {min(kept)}-{max(kept)}", flush=True)
 
 
-def victoria_park(params_file: str, observation_scale: float, replicates: int, seed: int):
-    """Item 2 on Victoria Park: the filter with the Params of ``params_file`` (the
-    calibrated set's log: its detector, its constant laser steering bias), the model with
-    their observation noise divided by ``observation_scale``."""
+def victoria_park(params_file: str, observation_scale: float, replicates: int, seed: int,
+                  steering_bias: str = "constant"):
+    """Item 2 on Victoria Park: the filter with the Params of ``params_file`` on the
+    calibrated set's log (its detector; the controls corrected by the laser-only steering
+    bias ``steering_bias``, "constant" as the set has it or the windowed "profile"), the
+    model with their observation noise divided by ``observation_scale``."""
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
     import victoria_park_pipeline as vps
     from jaxslam.datasets import victoria_park as vpm
 
     data = vpm.load_victoria_park()
     settings = vps.load_settings(vps.CALIBRATED)
+    settings = settings._replace(run={**settings.run, "steering_bias": steering_bias})
     config = vps.settings_config(settings)
     log, _, _ = vps.calibration_log(data, settings, config)
     params = pipeline.load_params(params_file, config)
@@ -304,7 +308,8 @@ def victoria_park(params_file: str, observation_scale: float, replicates: int, s
     drift = drift_against_model(config, params, model, controls, obs, start, replicates,
                                 seed=seed)
     steps = int(np.asarray(controls).shape[0])
-    print(f"Victoria Park: T={steps}, model's observation noise / {observation_scale:g}; "
+    print(f"Victoria Park: T={steps}, {steering_bias} steering bias, model's observation "
+          f"noise / {observation_scale:g}; "
           f"smoothed residuals' robust std {np.sqrt(drift.log_variance[0]):.5f} rad "
           f"(replicates {np.sqrt(drift.replicate_variance[0].mean()):.5f}); kappa(n) "
           f"{_columns(drift.kappa, WINDOWS, steps)}", flush=True)
@@ -316,6 +321,8 @@ def main(argv=None):
     parser.add_argument("--mrclam-data", default=str(MRCLAM))
     parser.add_argument("--victoria-park-params", default=None, metavar="FILE")
     parser.add_argument("--observation-scale", type=float, default=1.0)
+    parser.add_argument("--steering-bias", choices=("constant", "profile"), default="constant",
+                        help="Victoria Park: the laser-only steering bias the controls take")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--replicates", type=int, default=3)
     parser.add_argument("--heading-scales", type=float, nargs="*", default=[])
@@ -342,7 +349,7 @@ def main(argv=None):
                      args.filter_keys)
     if args.victoria_park_params is not None:
         victoria_park(args.victoria_park_params, args.observation_scale, args.replicates,
-                      args.seed)
+                      args.seed, args.steering_bias)
 
 
 if __name__ == "__main__":
