@@ -290,7 +290,8 @@ def victoria_park(params_file: str, observation_scale: float, replicates: int, s
                   steering_bias: str = "constant"):
     """Item 2 on Victoria Park: the filter with the Params of ``params_file`` on the
     calibrated set's log (its detector; the controls corrected by the laser-only steering
-    bias ``steering_bias``, "constant" as the set has it or the windowed "profile"), the
+    bias ``steering_bias``, "constant" as the set has it or the windowed "profile", whose
+    window ``victoria_park_pipeline.BIAS_WINDOW`` the legacy set's GPS tuning chose), the
     model with their observation noise divided by ``observation_scale``."""
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
     import victoria_park_pipeline as vps
