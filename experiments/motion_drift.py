@@ -42,6 +42,11 @@ dominate a mean square and partly cancel in the next step):
    drawn from the model itself, kappa(1) came out 0.62, 0.84 and 1.08
    (``tests/test_motion_drift_experiment.py``).
 
+``--command-delay SECONDS`` applies MRCLAM's commanded velocities (the dataset's odometry)
+that much later, as a robot that answers its commands with a lag would move; the whole
+diagnostic (calibration included) then runs on those controls. A delay read off Vicon is a
+diagnostic, not a setting.
+
 With ``--heading-scales``, each MRCLAM robot's calibrated Params are also run with their
 heading terms (rot1 and rot2 coefficients, ``association_heading_std``) times each scale,
 over filter keys 100, 101, ... (Vicon scores: dead reckoning ATE / filter ATE).
@@ -49,6 +54,7 @@ over filter keys 100, 101, ... (Vicon scores: dead reckoning ATE / filter ATE).
     python experiments/motion_drift.py --mrclam-robots 1 2 3 4 5 [--seed 0] [--replicates 3]
         [--heading-scales 1 1.4 2 3] [--filter-keys 6]
     python experiments/motion_drift.py --mrclam-robots 1 2 3 4 5 --truth-only
+        [--command-delay 0.2]
     python experiments/motion_drift.py --victoria-park-params FILE [--observation-scale 8]
         [--steering-bias constant|profile]
 
@@ -216,12 +222,22 @@ def with_heading_scale(params, scale: float):
                            association_heading_std=params.association_heading_std * scale)
 
 
-def mrclam_robot_log(data, robot: int):
-    """(``RobotLog`` of MRCLAM robot ``robot``, FilterConfig: P = 100, 64 slots)."""
+def delayed_commands(raw, delay: float):
+    """``MrclamRun`` ``raw`` with its commanded velocities taking effect ``delay`` seconds
+    later (odometry_time + delay): the robot answers a command with a lag. ValueError for a
+    delay that is not finite."""
+    if not np.isfinite(delay):
+        raise ValueError(f"command delay {delay}: a finite number of seconds")
+    return raw._replace(odometry_time=np.asarray(raw.odometry_time, np.float64) + delay)
+
+
+def mrclam_robot_log(data, robot: int, command_delay: float = 0.0):
+    """(``RobotLog`` of MRCLAM robot ``robot`` with its commands ``delayed_commands`` by
+    ``command_delay`` s, FilterConfig: P = 100, 64 slots)."""
     from jaxslam.datasets.mrclam import read_mrclam
     from jaxslam.datasets.mrclam_convert import DEFAULT_MAX_OBS, mrclam_log, mrclam_steps
 
-    raw = read_mrclam(data, robot)
+    raw = delayed_commands(read_mrclam(data, robot), command_delay)
     config = FilterConfig(num_particles=100, max_landmarks=64, max_obs=DEFAULT_MAX_OBS)
     return mrclam_log(raw, mrclam_steps(raw, DEFAULT_MAX_OBS)), config
 
@@ -253,10 +269,12 @@ def heading_scale_ratios(params, inputs, truth, dead_reckoning_ate: float, scale
     return ratios, kept
 
 
-def mrclam_robot(data, robot: int, seed: int, replicates: int, scales, filter_keys: int):
-    """Calibrate MRCLAM robot ``robot`` (``pipeline.filter_log``, key ``seed``) and print
-    both measures and, for each of ``scales``, the heading-scaled filter's ATE ratios."""
-    log, config = mrclam_robot_log(data, robot)
+def mrclam_robot(data, robot: int, seed: int, replicates: int, scales, filter_keys: int,
+                 command_delay: float = 0.0):
+    """Calibrate MRCLAM robot ``robot`` (``pipeline.filter_log``, key ``seed``; commands
+    delayed by ``command_delay`` s) and print both measures and, for each of ``scales``, the
+    heading-scaled filter's ATE ratios."""
+    log, config = mrclam_robot_log(data, robot, command_delay)
     print_truth_growth(log, f"robot {robot}, Vicon")
     run = pipeline.filter_log(log, config, key=jax.random.PRNGKey(seed), calibrate=True)
     inputs = pipeline.log_inputs(log, config)
@@ -328,6 +346,9 @@ def main(argv=None):
     parser.add_argument("--replicates", type=int, default=3)
     parser.add_argument("--heading-scales", type=float, nargs="*", default=[])
     parser.add_argument("--filter-keys", type=int, default=6)
+    parser.add_argument("--command-delay", type=float, default=0.0, metavar="SECONDS",
+                        help="MRCLAM: apply each commanded velocity this much later "
+                             "(a diagnostic: the robot's lag behind its commands)")
     parser.add_argument("--truth-only", action="store_true",
                         help="MRCLAM: only the growth against Vicon (item 1; seconds)")
     args = parser.parse_args(argv)
@@ -339,15 +360,18 @@ def main(argv=None):
         parser.error(f"--observation-scale {args.observation_scale}: a positive factor")
     if any(scale <= 0.0 for scale in args.heading_scales):
         parser.error(f"--heading-scales {args.heading_scales}: positive factors")
+    if not np.isfinite(args.command_delay):
+        parser.error(f"--command-delay {args.command_delay}: a finite number of seconds")
     if args.heading_scales and args.filter_keys < 1:
         parser.error(f"--filter-keys {args.filter_keys}: at least 1 with --heading-scales")
     for robot in args.mrclam_robots:
         if args.truth_only:
-            print_truth_growth(mrclam_robot_log(args.mrclam_data, robot)[0],
-                               f"robot {robot}, Vicon")
+            print_truth_growth(mrclam_robot_log(args.mrclam_data, robot,
+                                                args.command_delay)[0],
+                               f"robot {robot}, commands {args.command_delay:+g} s, Vicon")
             continue
         mrclam_robot(args.mrclam_data, robot, args.seed, args.replicates, args.heading_scales,
-                     args.filter_keys)
+                     args.filter_keys, args.command_delay)
     if args.victoria_park_params is not None:
         victoria_park(args.victoria_park_params, args.observation_scale, args.replicates,
                       args.seed, args.steering_bias)

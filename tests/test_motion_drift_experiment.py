@@ -118,6 +118,8 @@ def test_with_heading_scale_changes_only_the_heading_terms():
      "--heading-scales [1.0, 0.0]: positive factors"),
     (["--mrclam-robots", "1", "--heading-scales", "2", "--filter-keys", "0"],
      "--filter-keys 0: at least 1 with --heading-scales"),
+    (["--mrclam-robots", "1", "--command-delay", "inf"],
+     "--command-delay inf: a finite number of seconds"),
     (["--mrclam-robots", "1", "--replicates", "0"], "--replicates 0: at least 1"),
     (["--victoria-park-params", "x.toml", "--observation-scale", "0"],
      "--observation-scale 0.0: a positive factor"),
@@ -155,3 +157,20 @@ def test_kappa_is_near_one_on_logs_drawn_from_the_model():
         kappas.append(result.kappa)
     median = np.median(kappas, axis=0)
     np.testing.assert_array_less(np.abs(np.log(median)), np.log(1.6))
+
+
+def test_delayed_commands_shift_only_the_odometry_times():
+    """The commands' times move by the delay; every other field is the same object; a delay
+    that is not finite is refused, as is the command-line flag."""
+    from jaxslam.datasets.mrclam import MrclamRun
+
+    fields = {name: np.arange(3.0) for name in MrclamRun._fields}
+    fields["robot"] = 1
+    raw = MrclamRun(**fields)
+    moved = drift.delayed_commands(raw, 0.2)
+    np.testing.assert_allclose(moved.odometry_time, [0.2, 1.2, 2.2])
+    for name in MrclamRun._fields:
+        if name != "odometry_time":
+            assert getattr(moved, name) is getattr(raw, name)
+    with pytest.raises(ValueError, match="command delay nan: a finite number of seconds"):
+        drift.delayed_commands(raw, float("nan"))
