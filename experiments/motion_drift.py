@@ -84,6 +84,7 @@ from jaxslam.calibration_bootstrap import log_solution, replicate_log  # noqa: E
 from jaxslam.datasets.odometry import odometry_path  # noqa: E402
 from jaxslam.filter import run_filter  # noqa: E402
 from jaxslam.self_calibration import group_scales  # noqa: E402
+from jaxslam.smoothing.residuals import wrap  # noqa: E402
 from jaxslam.types import FilterConfig  # noqa: E402
 
 WINDOWS = (1, 2, 5, 10, 20, 50, 100, 200)
@@ -107,11 +108,6 @@ class Drift(NamedTuple):
     @property
     def kappa(self) -> np.ndarray:
         return self.log_variance / self.replicate_variance.mean(axis=-1)
-
-
-def wrap(angle):
-    """Angles wrapped to [-pi, pi)."""
-    return (np.asarray(angle, np.float64) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def robust_variance(values) -> float:

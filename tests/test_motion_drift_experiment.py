@@ -9,15 +9,14 @@ from jaxslam.types import default_params
 def test_robust_variance_of_a_normal_and_with_spikes():
     """20,000 draws of N(0, 0.3^2), seed 0: (1.4826 MAD)^2 within 5 % of 0.09 (the MAD
     variance's relative standard error is about 2.33 / sqrt(N) = 1.6 % here, so 5 % is 3 of
-    them). With 1 % of the draws replaced by spikes of 30 (100 std) it stays within 10 % of
-    0.09, while the mean square grows about 100-fold (asserted: over 50-fold)."""
+    them). With 1 % of the draws replaced by spikes of 30 (100 std), which raise the mean
+    square about 100-fold, it stays within 10 % of 0.09."""
     rng = np.random.default_rng(0)
     draws = rng.normal(0.0, 0.3, 20_000)
     assert drift.robust_variance(draws) == pytest.approx(0.09, rel=0.05)
     spiked = draws.copy()
     spiked[::100] = 30.0
     assert drift.robust_variance(spiked) == pytest.approx(0.09, rel=0.10)
-    assert np.mean(spiked**2) > 50 * 0.09
     assert np.isnan(drift.robust_variance([]))
 
 
