@@ -8,6 +8,15 @@ scores (ATE of the online mean path and of the smoothed one, against dead reckon
 
     python experiments/mrclam.py [--robots 1 2 3 4 5] [--particles 100] [--close-loops]
 
+The odometry is the commanded velocities, which the robots follow with a lag. By default
+(``--command-delay auto``) the lag is fitted from the log too: the log as stamped is
+calibrated and filtered, the smoother's profile likelihood over the delay is read with that
+run's associations (``jaxslam.command_delay.fit_log_command_delay``), and the log rebuilt at
+the fitted delay is calibrated and filtered again; that second run is the result.
+``--command-delay 0`` runs the log as stamped, ``--command-delay S`` at S seconds. Dead
+reckoning is always the log as stamped (a delay shifts its path in time by S and changes
+its ATE by millimetres).
+
 With ``--close-loops`` the smoothed path is ``loop_closure.close_loops``' (loops the filter
 missed closed by registration, each tested by the smoother's cost rise).
 
@@ -40,12 +49,15 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam import metrics, pipeline
+from jaxslam.command_delay import fit_log_command_delay
 from jaxslam.datasets.mrclam import read_mrclam
 from jaxslam.datasets.mrclam_convert import DEFAULT_MAX_OBS, mrclam_log, mrclam_steps
 from jaxslam.datasets.odometry import odometry_path
 from jaxslam.filter import run_filter
 from jaxslam.self_calibration import calibrate_params, starting_params
 from jaxslam.types import FilterConfig, default_params
+
+from experiments.mrclam_diagnostics import filter_variant  # noqa: E402
 
 DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "mrclam1"
 
@@ -65,10 +77,24 @@ def main(argv=None):
     parser.add_argument("--barcodes", choices=("none", "calibration", "both"), default="none",
                         help="diagnostic: association known from the barcodes in the "
                              "calibration, or in the calibration and the run")
+    parser.add_argument("--command-delay", default="auto", type=delay_argument,
+                        help="[s] the commands take effect this much later than stamped; "
+                             "'auto' (default) fits it from the log (module docstring), 0 runs "
+                             "the log as stamped")
+    parser.add_argument("--filter-keys", type=int, default=0,
+                        help="also run the calibrated settings with this many more filter keys "
+                             "(100, 101, ...) and print their median ratio: single runs of "
+                             "one setting vary by up to 2.8x on these robots")
     args = parser.parse_args(argv)
+    if args.filter_keys < 0:
+        parser.error(f"--filter-keys {args.filter_keys}: expected 0 or more")
     if args.barcodes != "none" and (args.no_calibrate or args.close_loops):
         parser.error("--barcodes calibrates and filters only (no --no-calibrate, "
                      "--close-loops)")
+    if args.command_delay == "auto" and (args.no_calibrate or args.barcodes != "none"):
+        parser.error("--command-delay auto fits the delay with the blind calibration: give "
+                     "--command-delay 0 (or a number of seconds) with --no-calibrate or "
+                     "--barcodes")
     config = FilterConfig(num_particles=args.particles, max_landmarks=64, max_obs=8)
     rows = []
     for robot in args.robots:
@@ -79,12 +105,17 @@ def main(argv=None):
         dr = np.asarray(odometry_path(log.controls, log.initial_pose))[-len(truth):]
         dr_ate = float(metrics.ate_rmse(dr, truth))
         start = time.perf_counter()
+        delay = args.command_delay
+        if delay == "auto":
+            delay = fitted_delay(raw, steps, log, config, args.seed, args.existence_max)
+        log = mrclam_log(raw, steps, command_delay=delay)
         if args.barcodes != "none":
             ate, landmarks, info = with_barcodes(log, steps.obs_landmark, config,
                                                  args.barcodes, args.seed, args.existence_max)
             rows.append((dr_ate, ate, np.nan, landmarks, np.nan))
-            print(f"robot {robot}: T={log.num_steps} | dead reckoning ATE {dr_ate:.3f} m | "
-                  f"barcodes in the {args.barcodes.replace('both', 'calibration and run')}: "
+            where = args.barcodes.replace('both', 'calibration and run')
+            print(f"robot {robot}: T={log.num_steps} | commands {delay:+.3f} s | dead "
+                  f"reckoning ATE {dr_ate:.3f} m | barcodes in the {where}: "
                   f"filter ATE {ate:.3f} m (dead reckoning / filter {dr_ate / ate:.2f}) | "
                   f"{landmarks} landmarks | {time.perf_counter() - start:.1f} s | "
                   f"{info.verdict}", flush=True)
@@ -101,8 +132,9 @@ def main(argv=None):
         rows.append((dr_ate, m["ate_rmse"], m["smoothed_ate_rmse"], m["num_landmarks"],
                      m["num_trees_mapped"]))
         verdict = run.calibration.verdict if run.calibration is not None else "not calibrated"
-        print(f"robot {robot}: T={log.num_steps} | dead reckoning ATE {dr_ate:.3f} m | "
-              f"filter ATE {m['ate_rmse']:.3f} m, smoothed {m['smoothed_ate_rmse']:.3f} m | "
+        print(f"robot {robot}: T={log.num_steps} | commands {delay:+.3f} s | dead reckoning "
+              f"ATE {dr_ate:.3f} m | filter ATE {m['ate_rmse']:.3f} m, smoothed "
+              f"{m['smoothed_ate_rmse']:.3f} m | "
               f"{m['num_landmarks']:.0f} landmarks, {m['num_trees_mapped']:.0f} of 15 mapped "
               f"(map error {m['map_error']:.3f} m) | {seconds:.1f} s | {verdict}"
               + (f" | {m['loop_closures']} closures, {m['landmarks_joined']} landmarks joined"
@@ -115,12 +147,52 @@ def main(argv=None):
                                     else round(v, 5)) for k, v in run.calibration.values.items()})
         for line in run.warnings:
             print("   WARNING:", line)
+        if args.filter_keys:
+            median, ratios, _, kept = filter_variant(
+                run.params, pipeline.log_inputs(log, config), truth, dr_ate,
+                range(100, 100 + args.filter_keys))
+            print(f"   filter keys 100-{99 + args.filter_keys}: dead reckoning / filter ATE "
+                  f"median {median:.2f}x ({' '.join(f'{r:.2f}' for r in ratios)}); "
+                  f"landmarks kept, median {kept:.0f}", flush=True)
     rows = np.asarray(rows)
     smoothed = ("" if args.barcodes != "none"  # the barcode runs are not smoothed
                 else f", smoothed {np.median(rows[:, 2]):.3f} m")
     print(f"median: dead reckoning {np.median(rows[:, 0]):.3f} m, filter "
           f"{np.median(rows[:, 1]):.3f} m{smoothed}; ratio dead reckoning / filter "
           f"{np.median(rows[:, 0] / rows[:, 1]):.2f}; landmarks {np.median(rows[:, 3]):.0f}")
+
+
+def delay_argument(text: str):
+    """``--command-delay``'s value: "auto" or a finite number of seconds."""
+    if text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected 'auto' or a finite number of "
+                                         "seconds")
+    return value
+
+
+def fitted_delay(raw, steps, log, config: FilterConfig, seed: int,
+                 existence_max: float | None) -> float:
+    """The command delay [s] fitted from one robot's log (module docstring), printed with its
+    profile: the log as stamped (``log``) calibrated and filtered with key ``seed``, then
+    ``fit_log_command_delay`` on the logs ``mrclam_log`` rebuilds at each candidate delay."""
+    tick = time.perf_counter()
+    run = pipeline.filter_log(log, config, start_params(config, existence_max),
+                              jax.random.PRNGKey(seed), calibrate=True)
+    fit = fit_log_command_delay(lambda delay: mrclam_log(raw, steps, command_delay=delay),
+                                config, jax.random.PRNGKey(seed), run.params)
+    profile = fit.neg2_log_likelihood - fit.neg2_log_likelihood.min()
+    print(f"robot {raw.robot}: command delay fitted from the log {fit.delay:.3f} s"
+          + (" (at the candidates' edge: widen them)" if fit.at_edge else "")
+          + " | -2 log L above its least at "
+          + ", ".join(f"{d:+.1f} s {v:.0f}" for d, v in zip(fit.delays, profile))
+          + f" | {time.perf_counter() - tick:.1f} s", flush=True)
+    return fit.delay
 
 
 def start_params(config: FilterConfig, existence_max: float | None, calibrate: bool = True):

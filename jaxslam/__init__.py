@@ -35,6 +35,9 @@ _PUBLIC = {
     "calibrate_params": "jaxslam.self_calibration",
     "CalibrationInfo": "jaxslam.self_calibration",
     "starting_params": "jaxslam.self_calibration",
+    "fit_command_delay": "jaxslam.command_delay",
+    "fit_log_command_delay": "jaxslam.command_delay",
+    "DelayFit": "jaxslam.command_delay",
     "filter_log": "jaxslam.pipeline",
     "LogRun": "jaxslam.pipeline",
 }

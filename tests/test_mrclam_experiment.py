@@ -1,4 +1,6 @@
 """experiments/mrclam.py's barcode diagnostic (``with_barcodes``) on a tiny exact log."""
+import argparse
+
 import numpy as np
 import pytest
 
@@ -50,6 +52,24 @@ def test_barcodes_refuse_the_options_they_do_not_run(capsys):
         with pytest.raises(SystemExit):
             experiment.main(["--barcodes", "both", "--robots", "1", *extra])
         assert "--barcodes calibrates and filters only" in capsys.readouterr().err
+
+
+def test_command_delay_argument(capsys):
+    """``--command-delay``: "auto" or a finite number of seconds; auto needs the blind
+    calibration, so --no-calibrate and --barcodes ask for a number."""
+    assert experiment.delay_argument("auto") == "auto"
+    assert experiment.delay_argument("0.25") == 0.25
+    assert experiment.delay_argument("-0.1") == -0.1
+    for text in ("nan", "inf", "soon"):
+        with pytest.raises(argparse.ArgumentTypeError, match="'auto' or a finite number"):
+            experiment.delay_argument(text)
+    for extra in (["--no-calibrate"], ["--barcodes", "both"]):
+        with pytest.raises(SystemExit):
+            experiment.main(["--robots", "1", *extra])
+        assert "--command-delay auto fits the delay" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        experiment.main(["--robots", "1", "--filter-keys", "-1"])
+    assert "--filter-keys -1" in capsys.readouterr().err
 
 
 def test_start_params_sets_only_the_existence_cap():

@@ -248,7 +248,8 @@ def read_mrclam(root, robot: int = 1, rate_hz: float | None = RATE_HZ) -> Mrclam
 def load_mrclam(root, robot: int = 1, max_obs: int = DEFAULT_MAX_OBS,
                 step_dt: float | None = None, max_gap: float | None = DEFAULT_MAX_GAP,
                 rate_hz: float | None = RATE_HZ,
-                min_translation: float = MRCLAM_MIN_TRANSLATION) -> RobotLog:
+                min_translation: float = MRCLAM_MIN_TRANSLATION,
+                command_delay: float = 0.0) -> RobotLog:
     """Robot ``robot`` of the MRCLAM folder ``root`` as a validated ``RobotLog``.
 
     Args:
@@ -261,6 +262,8 @@ def load_mrclam(root, robot: int = 1, max_obs: int = DEFAULT_MAX_OBS,
       rate_hz: the odometry / ground-truth sampling rate used to rebuild their times; None
         takes the printed times.
       min_translation: pure-turn threshold of the integrated moves (``odometry_between``).
+      command_delay: [s] the commands take effect this much later than stamped (``mrclam_log``;
+        fitted from the log by ``jaxslam.command_delay.fit_log_command_delay``).
     Returns:
       RobotLog with time (T,), controls (T, 3) odometry, obs_z (T, K, 2), obs_valid (T, K),
       truth_pose (T, 3), truth_landmarks (15, 2), initial_pose (3,) (Vicon at the start).
@@ -270,4 +273,5 @@ def load_mrclam(root, robot: int = 1, max_obs: int = DEFAULT_MAX_OBS,
       LogFormatError: a malformed file (names file and line) or no landmark measurement.
     """
     run = read_mrclam(root, robot, rate_hz)
-    return mrclam_log(run, mrclam_steps(run, max_obs, step_dt, max_gap), min_translation)
+    return mrclam_log(run, mrclam_steps(run, max_obs, step_dt, max_gap), min_translation,
+                      command_delay)

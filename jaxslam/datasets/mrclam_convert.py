@@ -211,9 +211,22 @@ def mrclam_steps(run: MrclamRun, max_obs: int = DEFAULT_MAX_OBS, step_dt: float 
 
 
 def mrclam_log(run: MrclamRun, steps: MrclamSteps,
-               min_translation: float = MRCLAM_MIN_TRANSLATION) -> RobotLog:
-    """The validated ``RobotLog`` of ``steps``: odometry moves, Vicon truth, start pose."""
-    controls = integrate_controls(run.odometry_time, run.odometry, steps.time, "velocity",
+               min_translation: float = MRCLAM_MIN_TRANSLATION,
+               command_delay: float = 0.0) -> RobotLog:
+    """The validated ``RobotLog`` of ``steps``: odometry moves, Vicon truth, start pose.
+
+    ``command_delay`` [s]: each commanded velocity takes effect that much later than its
+    time stamp (the robots answer their commands with a lag, which
+    ``command_delay.fit_log_command_delay`` fits from the log). Only the moves change: the
+    steps, the observations, the start time and pose and the truth stay as they are (before
+    its first, delayed, command the robot stands still; a negative delay moves the first
+    commands before the start).
+    """
+    if not np.isfinite(command_delay):
+        raise ValueError(f"command_delay={command_delay!r}: expected a finite number of "
+                         "seconds")
+    controls = integrate_controls(np.asarray(run.odometry_time, np.float64) + command_delay,
+                                  run.odometry, steps.time, "velocity",
                                   min_translation=min_translation)
     start = run.odometry_time[:1]
     log = RobotLog(time=steps.time, motion_model="odometry", controls=controls,

@@ -113,6 +113,24 @@ def cost(problem: Problem, path, landmark):
     return robust_cost(problem, whitened(problem, path, landmark))[0]
 
 
+def neg2_log_likelihood(problem: Problem, path, landmark) -> float:
+    """-2 log L of poses (T, 3) and positions (L, 2) under ``problem``'s noise, up to a
+    constant: the robust cost plus the Gaussian normalisers,
+
+        cost + sum_t log det C_t + sum_n 2 log(sigma_r,n sigma_b,n),
+
+    with C_t = (W_t^T W_t)^-1 from the moves' whitening W_t (``move_white``) and the
+    observations' stds (``obs_std``). The Huber and Geman-McClure losses are read as
+    densities proportional to exp(-rho / 2) in whitened units, whose normalisers depend on
+    their thresholds alone: a constant of the problem's rows. So two problems with the same
+    rows and thresholds, whose noise (scales) or measured moves differ, compare by this
+    value: minimised over the path, the map and the noise scales, a profile likelihood.
+    """
+    _, log_abs_det_white = np.linalg.slogdet(problem.move_white)
+    return float(cost(problem, path, landmark) - 2.0 * np.sum(log_abs_det_white)
+                 + 2.0 * np.sum(np.log(problem.obs_std)))
+
+
 class Pattern(NamedTuple):
     """The Jacobian's sparsity of one problem, built once and filled at every linearisation.
 

@@ -16,7 +16,7 @@ import numpy as np
 from jaxslam.lineage import LineagePath, landmark_identities
 from jaxslam.smoothing import solver
 from jaxslam.smoothing.problem import (NoiseScales, Problem, geman_mcclure_weight, linearize,
-                                       rescaled, whitened)
+                                       neg2_log_likelihood, rescaled, whitened)
 from jaxslam.smoothing.residuals import initial_landmarks, move_whitening, observation_std
 from jaxslam.smoothing.visits import Visits, check_visit_options, largest_visit, split_visits
 from jaxslam.types import Params
@@ -35,7 +35,9 @@ class Smoothed(NamedTuple):
     redundancy: (4,) each noise group's redundancy r_g (``solver.variance_factors``) in the
     last ``calibrate_rounds`` round, else None; degrees_of_freedom: (4,) the degrees of
     freedom of each group's variance factor, the four estimated together (nu_g <= r_g,
-    ``solver.variance_factors``), likewise.
+    ``solver.variance_factors``), likewise; neg2_log_likelihood: -2 log L of the returned
+    solution at the returned scales, normalisers included (``problem.neg2_log_likelihood``;
+    with ``calibrate_rounds``, the profile likelihood of the moves and associations given).
     """
 
     path: np.ndarray
@@ -48,6 +50,7 @@ class Smoothed(NamedTuple):
     visits: Visits | None = None
     redundancy: np.ndarray | None = None
     degrees_of_freedom: np.ndarray | None = None
+    neg2_log_likelihood: float | None = None
 
 
 def _check_inputs(start_pose, path, odometry, z, landmark_of_obs, steps: int):
@@ -142,7 +145,8 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
                        else (components.redundancy, components.degrees_of_freedom))
     if visit_gap is None:
         return Smoothed(path, landmark, landmark_of_obs, costs, step, converged, scales,
-                        redundancy=redundancy, degrees_of_freedom=dof)
+                        redundancy=redundancy, degrees_of_freedom=dof,
+                        neg2_log_likelihood=neg2_log_likelihood(problem, path, landmark))
     # Split from the merged solution: every link starts satisfied, at the least-squares
     # compromise, and the redescending loss then lets go of the ones that stay stretched.
     visit_of_obs, visit_landmark, links = split_visits(landmark_of_obs, visit_gap,
@@ -158,7 +162,7 @@ def smooth_path(start_pose, path, odometry, z, landmark_of_obs, params: Params,
     return Smoothed(path, largest_visit(visit_position, visit_of_obs, visit_landmark),
                     landmark_of_obs, costs, step, converged, scales,
                     Visits(visit_position, visit_of_obs, visit_landmark, links, link_weight),
-                    redundancy, dof)
+                    redundancy, dof, neg2_log_likelihood(problem, path, visit_position))
 
 
 def _check_options(iterations, calibrate_rounds, huber, scales, visit_gap, link_std,

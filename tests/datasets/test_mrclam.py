@@ -154,6 +154,25 @@ def test_log_matches_the_hand_computed_reference(root):
     validate_log(log)
 
 
+def test_command_delay_moves_only_the_moves(root):
+    """Commands 1 s late: the robot stands for 1 s, drives straight 1 -> 3 s, turns 3 -> 5 s
+    (the last turning sample, 3.98 s, acts at 4.98 s), then stands; steps, observations,
+    start and truth are those of the log as stamped."""
+    stamped = mm.load_mrclam(root, robot=1, max_obs=2, max_gap=None)
+    late = mm.load_mrclam(root, robot=1, max_obs=2, max_gap=None, command_delay=1.0)
+    expected = np.stack([STILL, STRAIGHT[0.41], STRAIGHT[0.59], STRAIGHT[1.0],
+                         move(*euler_arc(80)), move(*euler_arc(20))])
+    np.testing.assert_allclose(late.controls, expected, rtol=0, atol=1e-9)
+    for field in ("time", "obs_z", "obs_valid", "truth_pose", "truth_landmarks",
+                  "initial_pose"):
+        np.testing.assert_array_equal(getattr(late, field), getattr(stamped, field))
+    same = mm.load_mrclam(root, robot=1, max_obs=2, max_gap=None, command_delay=0.0)
+    np.testing.assert_array_equal(same.controls, stamped.controls)
+    for bad in (np.nan, np.inf):
+        with pytest.raises(ValueError, match="command_delay=.*finite number of seconds"):
+            mm.load_mrclam(root, robot=1, command_delay=bad)
+
+
 def test_dead_reckoning_from_the_initial_pose(root):
     log = mm.load_mrclam(root, robot=1, max_gap=None)
     path = odometry_path(log.controls, log.initial_pose)

@@ -1,0 +1,230 @@
+"""The command delay fitted from the log alone (``jaxslam.command_delay``): the smoother's
+-2 log L against a NumPy float64 reference, the parabola's vertex, the candidates' checks, and
+the fit on simulated logs whose commands act 0.3 s late (with the associations known, and
+end to end from a filter run that finds them)."""
+import jax
+import numpy as np
+import pytest
+
+import jaxslam.smoothing.problem as lsq
+from jaxslam import command_delay as cd
+from jaxslam import smoothing
+from jaxslam.datasets.log_format import RobotLog
+from jaxslam.datasets.odometry import integrate_controls
+from jaxslam.smoothing import residuals
+from jaxslam.types import FilterConfig, default_params
+from tests.test_smoothing import loop_problem, numpy_move_residual, numpy_observation_residual
+from tests.test_smoothing import odometry_path as numpy_odometry_path
+
+TRUE_DELAY = 0.3  # [s], the simulated robot's lag behind its commands
+
+
+# ---------------------------------------------------------------------------------------------
+# -2 log L of the smoother
+
+
+def numpy_neg2_log_likelihood(start, path, landmark, odometry, z, ids, params, scales):
+    """Reference: sum_t e_t^T C_t^-1 e_t + log det C_t + sum_n (e_n / sigma_n)^2
+    + 2 log(sigma_r sigma_b), Gaussian rows (no Huber). C_t = (W_t^T W_t)^-1 of the moves'
+    whitening W_t (checked against its own reference in test_smoothing) with its heading row
+    divided by the heading scale and its translation rows by the translation scale; the
+    observations' stds times the range and bearing scales."""
+    delta, white = residuals.move_whitening(odometry, params)
+    row_scale = np.array([scales[0], scales[1], scales[1]])  # W's rows: (theta, x, y)
+    previous = np.concatenate([start[None], path[:-1]])
+    error = numpy_move_residual(previous, path, delta)[0]  # (x, y, theta), W's columns
+    total = 0.0
+    for t in range(len(path)):
+        scaled = white[t] / row_scale[:, None]
+        covariance = np.linalg.inv(scaled.T @ scaled)
+        total += error[t] @ np.linalg.solve(covariance, error[t])
+        total += np.log(np.linalg.det(covariance))
+    t_obs, k_obs = np.nonzero(ids >= 0)
+    obs_error = numpy_observation_residual(path[t_obs], landmark[ids[t_obs, k_obs]],
+                                           z[t_obs, k_obs])[0]
+    std = residuals.observation_std(z[t_obs, k_obs, 0], params) * np.array(scales[2:])
+    total += np.sum((obs_error / std) ** 2) + 2.0 * np.sum(np.log(std))
+    return total
+
+
+@pytest.mark.parametrize("scales", [(1.0, 1.0, 1.0, 1.0), (1.7, 0.6, 2.0, 0.8)])
+def test_neg2_log_likelihood_matches_the_numpy_reference(scales):
+    truth, odometry, z, ids = loop_problem(0, steps=40)
+    rng = np.random.default_rng(3)
+    path = truth[1:] + rng.normal(size=truth[1:].shape) * [0.05, 0.05, 0.01]
+    landmark = residuals.initial_landmarks(path, z, ids, int(ids.max()) + 1)
+    params = default_params(rot1_noise=(0.0, 0.0, 0.01), rot2_noise=(0.0, 0.0, 0.01),
+                            range_noise=(0.0, 0.02), bearing_noise=(0.0, 0.002))
+    t_obs, k_obs = np.nonzero(ids >= 0)
+    delta, white = residuals.move_whitening(odometry, params)
+    base = lsq.Problem(truth[0], delta, white, t_obs, ids[t_obs, k_obs], z[t_obs, k_obs],
+                       residuals.observation_std(z[t_obs, k_obs, 0], params), huber=1e9)
+    problem = lsq.rescaled(base, smoothing.NoiseScales(*scales))
+    value = lsq.neg2_log_likelihood(problem, path, landmark)
+    reference = numpy_neg2_log_likelihood(truth[0], path, landmark, odometry, z, ids, params,
+                                          scales)
+    # float64 throughout; the two sum ~10^4 terms in different orders
+    np.testing.assert_allclose(value, reference, rtol=1e-10)
+
+
+def test_smoothed_reports_the_neg2_log_likelihood_of_its_solution():
+    truth, odometry, z, ids = loop_problem(1, steps=60)
+    z = z + np.random.default_rng(4).normal(size=z.shape) * [0.01, 0.001]
+    params = default_params(rot1_noise=(0.0, 0.0, 0.01), rot2_noise=(0.0, 0.0, 0.01),
+                            range_noise=(0.0, 0.02), bearing_noise=(0.0, 0.002))
+    out = smoothing.smooth_path(truth[0], truth[1:], odometry, z, ids, params,
+                                calibrate_rounds=2)
+    t_obs, k_obs = np.nonzero(ids >= 0)
+    delta, white = residuals.move_whitening(odometry, params)
+    base = lsq.Problem(truth[0], delta, white, t_obs, ids[t_obs, k_obs], z[t_obs, k_obs],
+                       residuals.observation_std(z[t_obs, k_obs, 0], params), huber=3.0)
+    expected = lsq.neg2_log_likelihood(lsq.rescaled(base, out.noise_scales), out.path,
+                                       out.landmark)
+    np.testing.assert_allclose(out.neg2_log_likelihood, expected, rtol=1e-12)
+    # the Huber cost is the cost history's last entry, the rest the normalisers
+    assert out.neg2_log_likelihood != pytest.approx(out.cost[-1])
+
+
+# ---------------------------------------------------------------------------------------------
+# The parabola and the candidates
+
+
+@pytest.mark.parametrize("x, y", [([0.0, 0.1, 0.2], [5.0, 1.0, 2.0]),
+                                  ([-0.3, 0.0, 0.5], [1.0, -2.0, 4.0]),
+                                  ([1.0, 2.0, 4.0], [3.0, 2.9, 3.2])])
+def test_parabola_vertex_matches_numpy_polyfit(x, y):
+    a, b, _ = np.polyfit(np.asarray(x), np.asarray(y), 2)
+    assert cd.parabola_vertex(x, y) == pytest.approx(-b / (2.0 * a), abs=1e-12)
+
+
+def test_parabola_vertex_edges():
+    # collinear and opening downwards: no interior minimum, the middle point
+    assert cd.parabola_vertex([0.0, 1.0, 2.0], [3.0, 2.0, 1.0]) == 1.0
+    assert cd.parabola_vertex([0.0, 1.0, 2.0], [1.0, 3.0, 1.0]) == 1.0
+    # a vertex beyond the outer points is clipped to them
+    assert cd.parabola_vertex([0.0, 1.0, 2.0], [10.0, 1.0, 0.9]) == pytest.approx(
+        np.clip(-np.polyfit([0, 1, 2], [10.0, 1.0, 0.9], 2)[1]
+                / (2 * np.polyfit([0, 1, 2], [10.0, 1.0, 0.9], 2)[0]), 0.0, 2.0))
+
+
+@pytest.mark.parametrize("delays", [(0.0, 0.1), (0.0, 0.2, 0.1), (0.0, np.nan, 0.2),
+                                    [[0.0, 0.1, 0.2]], (0.0, 0.0, 0.1)])
+def test_bad_candidates_are_named(delays):
+    with pytest.raises(ValueError, match="at least three finite candidate delays"):
+        cd.check_delays(delays)
+
+
+def test_default_candidates():
+    np.testing.assert_allclose(cd.check_delays(cd.DEFAULT_DELAYS),
+                               np.arange(-0.2, 0.65, 0.1), atol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
+# The fit on simulated logs with commands acting 0.3 s late
+
+
+class DelayedWorld:
+    """A unicycle driven by 50 Hz commands (0.4 m/s, a new turn rate in [-0.6, 0.6] rad/s
+    every 2 s) that it follows ``TRUE_DELAY`` s late, 25 trees, range-bearing sightings of
+    the 4 nearest within 8 m every 0.25 s (1 cm, 1 mrad noise), for ``seconds`` s."""
+
+    def __init__(self, seed: int = 0, seconds: float = 50.0):
+        rng = np.random.default_rng(seed)
+        self.control_time = np.arange(0.0, seconds, 0.02)
+        rate = np.repeat(rng.uniform(-0.6, 0.6, int(np.ceil(seconds / 2.0))), 100)
+        self.commands = np.stack([np.full_like(self.control_time, 0.4),
+                                  rate[:self.control_time.size]], axis=-1)
+        self.step_time = np.arange(0.25, seconds, 0.25)
+        self.start = np.zeros(3)
+        true_moves = self.moves_at(TRUE_DELAY)
+        self.truth = numpy_odometry_path(true_moves, self.start)
+        self.trees = rng.uniform(-12.0, 12.0, size=(25, 2)) + self.truth[:, :2].mean(0)
+        offset = self.trees[None] - self.truth[:, None, :2]
+        ranges = np.hypot(offset[..., 0], offset[..., 1])
+        bearings = np.arctan2(offset[..., 1], offset[..., 0]) - self.truth[:, 2:3]
+        nearest = np.argsort(ranges, axis=1)[:, :4]
+        self.ids = np.where(np.take_along_axis(ranges, nearest, 1) < 8.0, nearest, -1)
+        z = np.stack([np.take_along_axis(ranges, nearest, 1),
+                      np.take_along_axis(bearings, nearest, 1)], -1)
+        z = z + rng.normal(size=z.shape) * [0.01, 0.001]
+        z[..., 1] = (z[..., 1] + np.pi) % (2 * np.pi) - np.pi
+        self.z = np.where(self.ids[..., None] >= 0, z, 0.0)
+        self.params = default_params(rot1_noise=(0.0, 0.0, 0.003), rot2_noise=(0.0, 0.0, 0.003),
+                                     trans_noise=(0.02, 0.0, 0.002), range_noise=(0.0, 0.01),
+                                     bearing_noise=(0.0, 0.001))
+
+    def moves_at(self, delay: float) -> np.ndarray:
+        """(T, 3) moves of the commands applied ``delay`` s late, on the steps."""
+        return integrate_controls(self.control_time + delay, self.commands, self.step_time,
+                                  "velocity", min_translation=1e-3)
+
+    def log_at(self, delay: float) -> RobotLog:
+        return RobotLog(time=self.step_time, motion_model="odometry",
+                        controls=self.moves_at(delay), obs_z=self.z, obs_valid=self.ids >= 0,
+                        initial_pose=self.start)
+
+
+@pytest.fixture(scope="module")
+def world():
+    return DelayedWorld()
+
+
+def test_the_fit_finds_the_lag_with_the_associations_known(world):
+    start_path = numpy_odometry_path(world.moves_at(0.0), world.start)  # dead reckoning as stamped
+    fit = cd.fit_command_delay(world.moves_at, world.start, start_path, world.z, world.ids,
+                               world.params)
+    # The true lag is a candidate; the parabola through it and its neighbours moved it to
+    # 0.292 s on this log (0.292-0.297 on seeds 0-3 of this world, measured). 0.05 s is half
+    # the candidates' spacing, so a fit one candidate off fails.
+    assert abs(fit.delay - TRUE_DELAY) < 0.05, (fit.delay, fit.neg2_log_likelihood)
+    assert not fit.at_edge
+    assert int(np.argmin(fit.neg2_log_likelihood)) == list(np.round(fit.delays, 6)).index(0.3)
+    # the profile falls towards the lag from both sides
+    best = int(np.argmin(fit.neg2_log_likelihood))
+    assert np.all(np.diff(fit.neg2_log_likelihood[:best + 1]) < 0)
+    assert np.all(np.diff(fit.neg2_log_likelihood[best:]) > 0)
+    assert fit.noise_scales.shape == (len(fit.delays), 4)
+    # a wrong lag reads as heading noise: the heading scale is least at the lag
+    assert int(np.argmin(fit.noise_scales[:, 0])) == best
+
+
+def test_a_minimum_at_the_candidates_edge_is_flagged(world):
+    path = numpy_odometry_path(world.moves_at(0.0), world.start)
+    fit = cd.fit_command_delay(world.moves_at, world.start, path, world.z, world.ids,
+                               world.params, delays=(0.5, 0.6, 0.7))
+    assert fit.at_edge and fit.delay == 0.5
+
+
+def test_non_finite_profile_is_named(world):
+    path = numpy_odometry_path(world.moves_at(0.0), world.start)
+
+    def broken(delay):
+        moves = world.moves_at(delay)
+        return moves * np.nan if delay > 0.15 else moves
+
+    with pytest.raises(ValueError):
+        cd.fit_command_delay(broken, world.start, path, world.z, world.ids, world.params,
+                             delays=(0.0, 0.1, 0.2))
+
+
+def test_the_fit_end_to_end_from_a_filter_run(world):
+    """The associations from a FastSLAM run on the log as stamped (unknown association)."""
+    config = FilterConfig(num_particles=30, max_landmarks=40, max_obs=4)
+    fit = cd.fit_log_command_delay(world.log_at, config, jax.random.PRNGKey(0), world.params)
+    # as above: within half the candidates' spacing (measured 0.292 s, the same as with the
+    # true associations: the filter found them)
+    assert abs(fit.delay - TRUE_DELAY) < 0.05, (fit.delay, fit.neg2_log_likelihood)
+
+
+def test_a_delayed_log_must_keep_its_steps(world):
+    config = FilterConfig(num_particles=30, max_landmarks=40, max_obs=4)
+
+    def shrinking(delay):
+        log = world.log_at(delay)
+        if delay == 0.0:
+            return log
+        return log._replace(time=log.time[:-1], controls=log.controls[:-1],
+                            obs_z=log.obs_z[:-1], obs_valid=log.obs_valid[:-1])
+
+    with pytest.raises(ValueError, match="must keep the steps"):
+        cd.fit_log_command_delay(shrinking, config, jax.random.PRNGKey(0), world.params)
