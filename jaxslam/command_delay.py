@@ -28,8 +28,9 @@ neighbours (left at the candidate when the minimum lies at the grid's edge, whic
 The associations come from one run at ``start_delay`` (0: the log as stamped). Where a large
 lag makes that run split trees, the associations can bias the profile towards the start
 delay; a second pass from the first fit (``start_delay`` and its calibrated ``Params``)
-would show it. Not done by default: on MRCLAM's five robots and on simulated logs with a
-0.3 s lag the first pass lands within 0.05 s of the lag (docs/results.md, mrclam).
+would show it. Not done by default: on simulated logs with a 0.3 s lag the first pass lands
+within 0.01 s of it, and on MRCLAM's five robots at 0.19-0.24 s, where Vicon puts the lag
+at about 0.2 s (docs/results.md, mrclam).
 
 Everything here is host-side NumPy float64 (the filter run is JAX).
 """
