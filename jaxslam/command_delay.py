@@ -17,10 +17,12 @@ its normalisers (``smoothing.problem.neg2_log_likelihood``) is read at that solu
 
     l(d) = -2 log p(z, u(d) | path, map, scales) at the smoothed path and map.
 
-That is the profile likelihood of d, the other unknowns estimated out. (The scales are the
-variance components' estimates, each group's chi-square over its redundancy, a REML-type
-estimate rather than the maximum of the likelihood itself; the same rule at every
-candidate.) The delay is the
+A profile criterion: the path, the map and the noise scales estimated out at each d. It is
+not the likelihood of one data set, since each candidate scores other moves u(d) (and their
+Eq. (1) covariances follow u(d)); it compares how well the log's observations and its
+commands, applied d late, fit one path. The scales are the variance components' estimates
+after ``VARIANCE_ROUNDS`` rounds (each group's chi-square over its redundancy, a REML-type
+rule, not iterated to convergence), the same rule at every candidate. The delay is the
 candidate with the least l(d), refined by the vertex of the parabola through it and its two
 neighbours (left at the candidate when the minimum lies at the grid's edge, which
 ``DelayFit.at_edge`` flags: widen the grid). Nothing here looks at ground truth.
@@ -28,8 +30,8 @@ neighbours (left at the candidate when the minimum lies at the grid's edge, whic
 The associations come from one run at ``start_delay`` (0: the log as stamped). Where a large
 lag makes that run split trees, the associations can bias the profile towards the start
 delay; a second pass from the first fit (``start_delay`` and its calibrated ``Params``)
-would show it. Not done by default: on simulated logs with a 0.3 s lag the first pass lands
-within 0.01 s of it, and on MRCLAM's five robots at 0.19-0.24 s, where Vicon puts the lag
+would show it. Not done by default: on simulated logs with a 0.27 s lag the first pass
+lands within 0.01 s of it, and on MRCLAM's five robots at 0.19-0.24 s, where Vicon puts the lag
 at about 0.2 s (docs/results.md, mrclam).
 
 Everything here is host-side NumPy float64 (the filter run is JAX).
@@ -135,13 +137,22 @@ def fit_command_delay(moves_at: Callable[[float], np.ndarray], start, path, z, l
     return DelayFit(delay, candidates, values, np.stack(scales), at_edge)
 
 
+def _check_odometry(log, delay) -> None:
+    """ValueError unless ``log`` (``log_at(delay)``) holds odometry moves."""
+    if log.motion_model != "odometry":
+        raise ValueError(f"log_at({delay}) has motion_model={log.motion_model!r}; the fit "
+                         "smooths odometry moves (rot1, trans, rot2): integrate the controls "
+                         "(datasets.integrate_controls) and give motion_model='odometry'")
+
+
 def fit_log_command_delay(log_at: Callable, config: FilterConfig, key, params: Params,
                           delays=DEFAULT_DELAYS, start_delay: float = 0.0) -> DelayFit:
     """``fit_command_delay`` of a log that its loader can rebuild at any delay.
 
     Args:
-      log_at: delay [s] -> ``RobotLog`` with the controls applied that much later, on the
-        same steps and with the same observations (``mrclam_log(..., command_delay=d)``).
+      log_at: delay [s] -> ``RobotLog`` of odometry moves (motion_model "odometry") with the
+        controls applied that much later, on the same steps and with the same observations
+        (``mrclam_log(..., command_delay=d)``); only its controls are read at each candidate.
       config: the ``FilterConfig`` of the run that gives the associations.
       key: its PRNG key; params: its ``Params`` (calibrated at ``start_delay``).
       delays: the candidates [s]; start_delay: the delay of the run that gives the
@@ -150,13 +161,16 @@ def fit_log_command_delay(log_at: Callable, config: FilterConfig, key, params: P
     from jaxslam import pipeline
     from jaxslam.calibration_bootstrap import log_solution
 
-    config, controls, observations, start = pipeline.log_inputs(log_at(float(start_delay)),
-                                                                config)
+    first = log_at(float(start_delay))
+    _check_odometry(first, start_delay)
+    config, controls, observations, start = pipeline.log_inputs(first, config)
     solution = log_solution(config, key, params, controls, observations, start)
     steps = np.asarray(controls).shape[0]
 
     def moves_at(delay: float) -> np.ndarray:
-        moves = np.asarray(log_at(delay).controls, np.float64)
+        log = log_at(delay)
+        _check_odometry(log, delay)
+        moves = np.asarray(log.controls, np.float64)
         if moves.shape != (steps, 3):
             raise ValueError(f"log_at({delay}) has {moves.shape[0]} steps, the log at "
                              f"{start_delay} s {steps}: a delayed log must keep the steps")

@@ -120,11 +120,12 @@ def neg2_log_likelihood(problem: Problem, path, landmark) -> float:
         cost + sum_t log det C_t + sum_n 2 log(sigma_r,n sigma_b,n),
 
     with C_t = (W_t^T W_t)^-1 from the moves' whitening W_t (``move_white``) and the
-    observations' stds (``obs_std``). The Huber and Geman-McClure losses are read as
-    densities proportional to exp(-rho / 2) in whitened units, whose normalisers depend on
-    their thresholds alone: a constant of the problem's rows. So two problems with the same
-    rows and thresholds, whose noise (scales) or measured moves differ, compare by this
-    value: minimised over the path, the map and the noise scales, a profile likelihood.
+    observations' stds (``obs_std``). Huber's loss is read as a density proportional to
+    exp(-rho / 2) in whitened units, whose normaliser depends on its threshold alone: a
+    constant of the problem's rows. Links (``visit_gap``) count by their Geman-McClure loss
+    alone (exp(-rho / 2) of a bounded loss has no finite normaliser), so compare problems
+    with the same links. Two problems with the same rows, threshold and links, whose noise
+    (scales) or measured moves differ, compare by this value.
     """
     _, log_abs_det_white = np.linalg.slogdet(problem.move_white)
     return float(cost(problem, path, landmark) - 2.0 * np.sum(log_abs_det_white)
