@@ -16,6 +16,13 @@ calibration takes about 4.5-5.5 minutes on 2 cores) when their folders are given
     python benchmarks/calibration.py --mrclam DIR     # or JAXSLAM_MRCLAM=DIR; --skip-mrclam
     python benchmarks/calibration.py --only mrclam --mrclam DIR --robots 1 2 3 4 5
     python benchmarks/calibration.py --only victoria_park --victoria-park DIR
+    python benchmarks/calibration.py --only mrclam --mrclam DIR --command-delay auto
+
+``--command-delay auto`` times MRCLAM as ``experiments/mrclam.py`` runs it by default: the
+calibration of the log as stamped, the commands' lag fitted from it
+(``command_delay.fit_log_command_delay``: one filter run and ten smoothings), and the
+calibration of the log rebuilt at the fitted lag; one more line gives each part and their
+sum as multiples of one filter run of the log as stamped.
 
 How to read a line:
 
@@ -136,7 +143,7 @@ def bench(name, config, controls, obs, start, stages: bool = False, params=None,
     totals = collections.defaultdict(float)
     restore = _timed_stages(totals) if stages else (lambda: None)
     try:
-        seconds, (_, info) = _time(lambda: calibrate_params(
+        seconds, (params_out, info) = _time(lambda: calibrate_params(
             config, key, controls, obs, start, params, search_workers=search_workers))
     finally:
         restore()
@@ -154,6 +161,34 @@ def bench(name, config, controls, obs, start, stages: bool = False, params=None,
         for _, _, label in STAGES:
             print(f"    {label:30s} {totals[label]:7.2f} s  {totals[label] / run:6.2f}x")
         print(f"    {'remainder':30s} {seconds - top:7.2f} s  {(seconds - top) / run:6.2f}x")
+    return seconds, run, params_out
+
+
+def bench_command_delay(name, folder, robot: int, config: FilterConfig, stages: bool,
+                        **timing):
+    """MRCLAM robot ``robot`` with its command lag fitted (module docstring): the stamped
+    log's ``bench`` line, the fit, the rebuilt log's ``bench`` line, and the sum."""
+    from jaxslam.command_delay import fit_log_command_delay
+    from jaxslam.datasets.mrclam import read_mrclam
+    from jaxslam.datasets.mrclam_convert import DEFAULT_MAX_OBS, mrclam_log, mrclam_steps
+    from jaxslam.pipeline import log_inputs
+
+    raw = read_mrclam(folder, robot)
+    steps = mrclam_steps(raw, DEFAULT_MAX_OBS)
+
+    def log_at(delay):
+        return mrclam_log(raw, steps, command_delay=delay)
+
+    first, run, params = bench(f"{name}, as stamped", *log_inputs(log_at(0.0), config),
+                               stages, **timing)
+    fit_s, fit = _time(lambda: fit_log_command_delay(log_at, config, jax.random.PRNGKey(0),
+                                                     params))
+    second, _, _ = bench(f"{name}, commands {fit.delay:+.3f} s late",
+                         *log_inputs(log_at(fit.delay), config), stages, **timing)
+    total = first + fit_s + second
+    print(f"    with the lag fitted: calibration {first / run:.1f}x + fit {fit_s:.1f} s "
+          f"({fit_s / run:.1f}x) + calibration at {fit.delay:.3f} s {second / run:.1f}x = "
+          f"{total:.1f} s, {total / run:.1f}x one filter run of the log as stamped")
 
 
 def main(argv=None):
@@ -177,6 +212,9 @@ def main(argv=None):
     parser.add_argument("--search-workers", type=int, default=None,
                         help="candidates the scale search runs at once (default: "
                         "calibrate_params' own, 2 on a CPU with two or more cores)")
+    parser.add_argument("--command-delay", choices=["none", "auto"], default="none",
+                        help="MRCLAM: 'auto' also times the lag fit and the calibration at "
+                             "the fitted lag (module docstring)")
     parser.add_argument("--stages", action="store_true",
                         help="print the seconds spent in each stage of the calibration")
     args = parser.parse_args(argv)
@@ -199,10 +237,15 @@ def main(argv=None):
             from jaxslam.datasets.mrclam import load_mrclam
             from jaxslam.pipeline import log_inputs
 
+            config = FilterConfig(num_particles=args.particles, max_landmarks=64)
             for robot in args.robots:
+                if args.command_delay == "auto":
+                    bench_command_delay(f"MRCLAM robot {robot}", pathlib.Path(args.mrclam),
+                                        robot, config, args.stages, **timing)
+                    continue
                 log = load_mrclam(pathlib.Path(args.mrclam), robot)
-                bench(f"MRCLAM robot {robot}", *log_inputs(log, FilterConfig(
-                    num_particles=args.particles, max_landmarks=64)), args.stages, **timing)
+                bench(f"MRCLAM robot {robot}", *log_inputs(log, config), args.stages,
+                      **timing)
     if "victoria_park" in only:
         if args.victoria_park is None or not pathlib.Path(args.victoria_park).is_dir():
             print(f"Victoria Park: skipped (no data folder: give --victoria-park DIR or set "
