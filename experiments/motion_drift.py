@@ -218,24 +218,15 @@ def with_heading_scale(params, scale: float):
                            association_heading_std=params.association_heading_std * scale)
 
 
-def delayed_commands(raw, delay: float):
-    """``MrclamRun`` ``raw`` with its commanded velocities taking effect ``delay`` seconds
-    later (odometry_time + delay): the robot answers a command with a lag. ValueError for a
-    delay that is not finite."""
-    if not np.isfinite(delay):
-        raise ValueError(f"command delay {delay}: a finite number of seconds")
-    return raw._replace(odometry_time=np.asarray(raw.odometry_time, np.float64) + delay)
-
-
 def mrclam_robot_log(data, robot: int, command_delay: float = 0.0):
-    """(``RobotLog`` of MRCLAM robot ``robot`` with its commands ``delayed_commands`` by
-    ``command_delay`` s, FilterConfig: P = 100, 64 slots)."""
-    from jaxslam.datasets.mrclam import read_mrclam
-    from jaxslam.datasets.mrclam_convert import DEFAULT_MAX_OBS, mrclam_log, mrclam_steps
+    """(``RobotLog`` of MRCLAM robot ``robot`` with its commands taking effect
+    ``command_delay`` s late, on the steps of the log as stamped (``mrclam_log``'s
+    ``command_delay``), FilterConfig: P = 100, 64 slots)."""
+    from jaxslam.datasets.mrclam import load_mrclam
+    from jaxslam.datasets.mrclam_convert import DEFAULT_MAX_OBS
 
-    raw = delayed_commands(read_mrclam(data, robot), command_delay)
     config = FilterConfig(num_particles=100, max_landmarks=64, max_obs=DEFAULT_MAX_OBS)
-    return mrclam_log(raw, mrclam_steps(raw, DEFAULT_MAX_OBS)), config
+    return load_mrclam(data, robot, DEFAULT_MAX_OBS, command_delay=command_delay), config
 
 
 def print_truth_growth(log, label: str) -> None:

@@ -158,18 +158,15 @@ def test_kappa_is_near_one_on_logs_drawn_from_the_model():
     np.testing.assert_array_less(np.abs(np.log(median)), np.log(1.6))
 
 
-def test_delayed_commands_shift_only_the_odometry_times():
-    """The commands' times move by the delay; every other field is the same object; a delay
-    that is not finite is refused, as is the command-line flag."""
-    from jaxslam.datasets.mrclam import MrclamRun
+def test_command_delay_is_the_loader_s(monkeypatch):
+    """``mrclam_robot_log`` hands the delay to the loader (``load_mrclam(...,
+    command_delay=)``, tested in tests/datasets/test_mrclam.py); a delay that is not finite
+    is refused, as is the command-line flag."""
+    from jaxslam.datasets import mrclam
 
-    fields = {name: np.arange(3.0) for name in MrclamRun._fields}
-    fields["robot"] = 1
-    raw = MrclamRun(**fields)
-    moved = drift.delayed_commands(raw, 0.2)
-    np.testing.assert_allclose(moved.odometry_time, [0.2, 1.2, 2.2])
-    for name in MrclamRun._fields:
-        if name != "odometry_time":
-            assert getattr(moved, name) is getattr(raw, name)
-    with pytest.raises(ValueError, match="command delay nan: a finite number of seconds"):
-        drift.delayed_commands(raw, float("nan"))
+    calls = []
+    monkeypatch.setattr(mrclam, "load_mrclam", lambda *args, **kwargs: calls.append(
+        (args, kwargs)) or "log")
+    log, config = drift.mrclam_robot_log("DIR", 3, 0.2)
+    assert log == "log" and config.num_particles == 100 and config.max_landmarks == 64
+    assert calls == [(("DIR", 3, 8), {"command_delay": 0.2})]
