@@ -19,10 +19,10 @@ calibration takes about 4.5-5.5 minutes on 2 cores) when their folders are given
     python benchmarks/calibration.py --only mrclam --mrclam DIR --command-delay auto
 
 ``--command-delay auto`` times MRCLAM as ``experiments/mrclam.py`` runs it by default: the
-calibration of the log as stamped, the commands' lag fitted from it
-(``command_delay.fit_log_command_delay``: one filter run and ten smoothings), and the
-calibration of the log rebuilt at the fitted lag; one more line gives each part and their
-sum as multiples of one filter run of the log as stamped.
+commands' lag fitted from the log (``command_delay.fit_log_command_delay``: one filter run
+with the calibration's first settings and five smoothings when the lag lies within 0.2 s of
+0), and the calibration of the log rebuilt at the fitted lag; one more line gives each part
+and their sum as multiples of one filter run of the log as stamped (compiled before the fit).
 
 How to read a line:
 
@@ -85,7 +85,7 @@ from jaxslam.types import FilterConfig  # noqa: E402
 
 # (module, function, label): the stages ``--stages`` times; nested ones are indented.
 STAGES = ((self_calibration, "run_filter", "filter runs"),
-          (self_calibration, "_best_history", "best particle's history"),
+          (self_calibration, "best_history", "best particle's history"),
           (smoothing, "smooth_path", "smoother"),
           (solver, "levenberg_marquardt", "  Levenberg-Marquardt solves"),
           (solver, "variance_factors", "  variance components"),
@@ -126,6 +126,20 @@ def _timed_stages(totals):
     return restore
 
 
+def filter_seconds(config, controls, obs, start, params, repeats: int = 3):
+    """(first, run): the seconds of a first filter run (with its compile) and the median of
+    ``repeats`` more, each with the lineage recorded, as the calibration's runs are."""
+    key = jax.random.PRNGKey(0)
+    controls = jnp.asarray(controls, jnp.float32)
+    start32 = jnp.asarray(start, jnp.float32)
+    first, _ = _time(lambda: run_filter(config, key, params, controls, obs, start32,
+                                        record_lineage=True))
+    run = float(np.median([_time(lambda: run_filter(config, key, params, controls, obs,
+                                                    start32, record_lineage=True))[0]
+                           for _ in range(repeats)]))
+    return first, run
+
+
 def bench(name, config, controls, obs, start, stages: bool = False, params=None,
           repeats: int = 3, search_workers: int | None = None):
     """Print one log's line (module docstring); ``params``: the calibration's starting point
@@ -137,12 +151,7 @@ def bench(name, config, controls, obs, start, stages: bool = False, params=None,
     # The calibration gets the start pose as given (float64, as ``filter_log`` passes it: its
     # smoother works in float64, and a start rounded to float32 moves EM's later runs, the
     # filter being chaotic in its inputs); the timed runs take the filter's float32.
-    start32 = jnp.asarray(start, jnp.float32)
-    first, _ = _time(lambda: run_filter(config, key, params, controls, obs, start32,
-                                        record_lineage=True))
-    run = float(np.median([_time(lambda: run_filter(config, key, params, controls, obs,
-                                                    start32, record_lineage=True))[0]
-                           for _ in range(repeats)]))
+    first, run = filter_seconds(config, controls, obs, start, params, repeats)
     totals = collections.defaultdict(float)
     restore = _timed_stages(totals) if stages else (lambda: None)
     try:
@@ -170,7 +179,8 @@ def bench(name, config, controls, obs, start, stages: bool = False, params=None,
 def bench_command_delay(name, folder, robot: int, config: FilterConfig, stages: bool,
                         **timing):
     """MRCLAM robot ``robot`` with its command lag fitted (module docstring): the stamped
-    log's ``bench`` line, the fit, the rebuilt log's ``bench`` line, and the sum."""
+    log's filter run (compiled first: the unit), the fit, the rebuilt log's ``bench`` line,
+    and the sum."""
     from jaxslam.command_delay import fit_log_command_delay
     from jaxslam.datasets.mrclam import read_mrclam
     from jaxslam.datasets.mrclam_convert import DEFAULT_MAX_OBS, mrclam_log, mrclam_steps
@@ -182,16 +192,18 @@ def bench_command_delay(name, folder, robot: int, config: FilterConfig, stages: 
     def log_at(delay):
         return mrclam_log(raw, steps, command_delay=delay)
 
-    first, run, params = bench(f"{name}, as stamped", *log_inputs(log_at(0.0), config),
-                               stages, **timing)
-    fit_s, fit = _time(lambda: fit_log_command_delay(log_at, config, jax.random.PRNGKey(0),
-                                                     params))
+    stamped = log_inputs(log_at(0.0), config)
+    _, run = filter_seconds(*stamped, starting_params(stamped[0]),
+                            timing.get("repeats", 3))
+    fit_s, fit = _time(lambda: fit_log_command_delay(log_at, config, jax.random.PRNGKey(0)))
+    print(f"{name}: lag fit {fit_s:.2f} s ({fit.delay:.3f} s from "
+          f"{len(fit.delays)} candidates) | filter run of the log as stamped {run:.2f} s")
     second, _, _ = bench(f"{name}, commands {fit.delay:+.3f} s late",
                          *log_inputs(log_at(fit.delay), config), stages, **timing)
-    total = first + fit_s + second
-    print(f"    with the lag fitted: calibration {first / run:.1f}x + fit {fit_s:.1f} s "
-          f"({fit_s / run:.1f}x) + calibration at {fit.delay:.3f} s {second / run:.1f}x = "
-          f"{total:.1f} s, {total / run:.1f}x one filter run of the log as stamped")
+    total = fit_s + second
+    print(f"    with the lag fitted: fit {fit_s:.1f} s ({fit_s / run:.1f}x) + calibration at "
+          f"{fit.delay:.3f} s {second / run:.1f}x = {total:.1f} s, {total / run:.1f}x one "
+          f"filter run of the log as stamped")
 
 
 def main(argv=None):

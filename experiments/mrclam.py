@@ -9,10 +9,10 @@ scores (ATE of the online mean path and of the smoothed one, against dead reckon
     python experiments/mrclam.py [--robots 1 2 3 4 5] [--particles 100] [--close-loops]
 
 The odometry is the commanded velocities, which the robots follow with a lag. By default
-(``--command-delay auto``) the lag is fitted from the log too: the log as stamped is
-calibrated and filtered, the smoother's profile likelihood over the delay is read with that
-run's associations (``jaxslam.command_delay.fit_log_command_delay``), and the log rebuilt at
-the fitted delay is calibrated and filtered again; that second run is the result.
+(``--command-delay auto``) the lag is fitted from the log too: one filter run of the log as
+stamped with the calibration's first settings gives the associations, the smoother's profile
+likelihood over the delay is read with them (``jaxslam.command_delay.fit_log_command_delay``),
+and the log rebuilt at the fitted delay is calibrated and filtered; that run is the result.
 ``--command-delay 0`` runs the log as stamped, ``--command-delay S`` at S seconds. Dead
 reckoning is always the log as stamped (a delay shifts its path in time by S and changes
 its ATE by under 1 mm on these robots). The seconds printed for a robot include the fit.
@@ -107,7 +107,8 @@ def main(argv=None):
         start = time.perf_counter()
         delay = args.command_delay
         if delay == "auto":
-            delay = fitted_delay(raw, steps, log, config, args.seed, args.existence_max)
+            delay = fitted_delay(raw, steps, config, args.seed,
+                                 start_params(config, args.existence_max))
         log = mrclam_log(raw, steps, command_delay=delay)
         if args.barcodes != "none":
             ate, landmarks, info = with_barcodes(log, steps.obs_landmark, config,
@@ -176,19 +177,17 @@ def delay_argument(text: str):
     return value
 
 
-def fitted_delay(raw, steps, log, config: FilterConfig, seed: int,
-                 existence_max: float | None) -> float:
+def fitted_delay(raw, steps, config: FilterConfig, seed: int, params) -> float:
     """The command delay [s] fitted from one robot's log (module docstring), printed with its
-    profile: the log as stamped (``log``) calibrated and filtered with key ``seed``, then
-    ``fit_log_command_delay`` on the logs ``mrclam_log`` rebuilds at each candidate delay."""
+    profile: ``fit_log_command_delay`` from the calibration's starting point ``params`` (None:
+    the library's) with key ``seed`` on the logs ``mrclam_log`` rebuilds at each candidate
+    delay, the associations from the log as stamped."""
     tick = time.perf_counter()
-    run = pipeline.filter_log(log, config, start_params(config, existence_max),
-                              jax.random.PRNGKey(seed), calibrate=True)
     fit = fit_log_command_delay(lambda delay: mrclam_log(raw, steps, command_delay=delay),
-                                config, jax.random.PRNGKey(seed), run.params)
+                                config, jax.random.PRNGKey(seed), params)
     profile = fit.neg2_log_likelihood - fit.neg2_log_likelihood.min()
     print(f"robot {raw.robot}: command delay fitted from the log {fit.delay:.3f} s"
-          + (" (at the candidates' edge: widen them)" if fit.at_edge else "")
+          + (" (at the search's bound: give --command-delay)" if fit.at_edge else "")
           + " | -2 log L above its least at "
           + ", ".join(f"{d:+.1f} s {v:.0f}" for d, v in zip(fit.delays, profile))
           + f" | {time.perf_counter() - tick:.1f} s", flush=True)

@@ -8,12 +8,15 @@ is correlated from step to step, which a particle filter's white Eq. (1) noise (
 2023) does not model.
 
 Method. One filter run on the log as it stands gives a best history, whose associations are
-then held fixed (``calibration_bootstrap.log_solution``). For each candidate delay d the
-controls are applied d seconds later on the same steps (the loader's ``log_at(d)``: the
-observations, steps and start stay as they are, only the moves change), the path and the map
-are smoothed with the four noise groups re-estimated from their residuals
-(``smoothing.VARIANCE_ROUNDS`` rounds of variance components), and the robust -2 log L with
-its normalisers (``smoothing.problem.neg2_log_likelihood``) is read at that solution:
+then held fixed: the run ``self_calibration.calibrate_params`` starts its EM with (by default
+``starting_params``, with the matching heading std of their motion noise on this log), so the
+fit needs no calibration before it and the calibration runs once, on the log at the fitted
+delay. For a candidate delay d the controls are applied d seconds later on the same steps
+(the loader's ``log_at(d)``: the observations, steps and start stay as they are, only the
+moves change), the path and the map are smoothed from the filter's path with the four noise
+groups re-estimated from their residuals (``smoothing.VARIANCE_ROUNDS`` rounds of variance
+components; the solver's settings of the calibration's M-step), and the robust -2 log L
+with its normalisers (``smoothing.problem.neg2_log_likelihood``) is read at that solution:
 
     l(d) = -2 log p(z, u(d) | path, map, scales) at the smoothed path and map.
 
@@ -22,32 +25,53 @@ not the likelihood of one data set, since each candidate scores other moves u(d)
 Eq. (1) covariances follow u(d)); it compares how well the log's observations and its
 commands, applied d late, fit one path. The scales are the variance components' estimates
 after ``VARIANCE_ROUNDS`` rounds (each group's chi-square over its redundancy, a REML-type
-rule, not iterated to convergence), the same rule at every candidate. The delay is the
-candidate with the least l(d), refined by the vertex of the parabola through it and its two
-neighbours (left at the candidate when the minimum lies at the grid's edge, which
-``DelayFit.at_edge`` flags: widen the grid). Nothing here looks at ground truth.
+rule, not iterated to convergence), the same rule at every candidate.
+
+Search. Each l(d) costs a smoothing, so the candidates are not a fixed grid: from the start
+delay the search walks downhill on a grid of ``step`` seconds until l rises
+(``bracket_minimum``), three smoothings when the lag lies within a step of the start, and the
+delay is the vertex of the parabola through the least candidate and its two neighbours. It
+stops at ``max_shift`` from the start, and ``DelayFit.at_edge`` flags a least candidate
+there. On MRCLAM's five robots (docs/results.md, mrclam) the profile is unimodal over
+-0.2..0.6 s, and the vertex of the 0.2 s bracket lands within 0.01 s of the vertex of a
+0.1 s grid. Nothing here looks at ground truth.
 
 The associations come from one run at ``start_delay`` (0: the log as stamped). Where a large
 lag makes that run split trees, the associations can bias the profile towards the start
 delay; a second pass from the first fit (``start_delay`` and its calibrated ``Params``)
 would show it. Not done by default: on simulated logs with a 0.27 s lag the first pass
-lands within 0.01 s of it, and on MRCLAM's five robots at 0.19-0.24 s, where Vicon puts the lag
-at about 0.2 s (docs/results.md, mrclam).
+lands within 0.03 s of it, and MRCLAM's first and second passes differ by 0.00-0.03 s
+(docs/results.md, mrclam), where Vicon puts the lag at about 0.2 s.
 
 Everything here is host-side NumPy float64 (the filter run is JAX).
 """
 from __future__ import annotations
 
+import math
 from typing import Callable, NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 
 from jaxslam import smoothing
+from jaxslam.filter import run_filter
 from jaxslam.types import FilterConfig, Params
 
-# Candidate delays [s]: -0.2 s to 0.6 s in 0.1 s steps (the commands late by up to 0.6 s,
-# early by up to 0.2 s). MRCLAM's robots lag 0.2 s; most clocks and drives fall inside.
-DEFAULT_DELAYS = tuple(round(0.1 * i, 10) for i in range(-2, 7))
+# The search's grid [s] and how far from the start it may walk [s]. MRCLAM's robots lag
+# 0.2 s behind their commands; most clocks and drives lie within a second.
+DEFAULT_STEP = 0.2
+DEFAULT_MAX_SHIFT = 1.0
+# Halvings of the bracket's spacing: 0.1 s between the candidates the parabola goes through.
+# Its vertex through candidates 0.2 s apart sat 0.06-0.09 s short of a simulated 0.27 s lag
+# (the profile is not a parabola over 0.4 s); 0.1 s apart, within 0.01 s.
+DEFAULT_REFINEMENTS = 1
+
+# The smoother's settings at each candidate: the calibration's M-step's (``calibrate_params``'
+# ``smoother_iterations`` default and its tolerance). On MRCLAM robot 2 they move l(d) by
+# under 25 (0.2% of its differences between candidates 0.2 s apart) against 30 steps at
+# 1e-6, at 0.4 of the time.
+PROFILE_ITERATIONS = 15
+PROFILE_TOL = 1e-4
 
 
 class DelayFit(NamedTuple):
@@ -55,11 +79,12 @@ class DelayFit(NamedTuple):
 
     Attributes:
       delay: the fitted delay [s] (the controls apply this much later than stamped).
-      delays: (D,) the candidates [s], increasing.
+      delays: (D,) the candidates the search evaluated [s], increasing, ``step`` apart.
       neg2_log_likelihood: (D,) l(d) at each candidate (module docstring).
       noise_scales: (D, 4) the smoother's re-estimated scales (heading, translation, range,
         bearing) at each candidate, relative to the ``Params`` given.
-      at_edge: the least l(d) is at the first or last candidate: the delay may lie outside.
+      at_edge: the least l(d) lies at the search's bound (``max_shift`` from the start): the
+        delay may lie beyond it.
     """
 
     delay: float
@@ -69,14 +94,59 @@ class DelayFit(NamedTuple):
     at_edge: bool
 
 
-def check_delays(delays) -> np.ndarray:
-    """(D,) float64 candidates, or ValueError: at least three, finite, strictly increasing."""
-    values = np.asarray(delays, np.float64)
-    if values.ndim != 1 or values.size < 3 or not np.all(np.isfinite(values)) \
-            or np.any(np.diff(values) <= 0.0):
-        raise ValueError(f"delays {delays!r}: expected at least three finite candidate delays "
-                         "[s] in increasing order")
-    return values
+def check_search(start_delay, step, max_shift, refinements) -> int:
+    """The most steps the walk may take from ``start_delay``, or ValueError: finite values,
+    step > 0, max_shift >= step and an integer refinements >= 0."""
+    values = (start_delay, step, max_shift)
+    if not all(np.isfinite(v) for v in values) or not step > 0 or not max_shift >= step:
+        raise ValueError(f"start_delay={start_delay!r}, step={step!r}, "
+                         f"max_shift={max_shift!r}: expected finite values [s] with step > 0 "
+                         "and max_shift >= step")
+    if isinstance(refinements, bool) or not isinstance(refinements, (int, np.integer)) \
+            or refinements < 0:
+        raise ValueError(f"refinements={refinements!r}: expected an integer >= 0")
+    return int(math.floor(max_shift / step + 1e-9))
+
+
+def search_minimum(criterion: Callable[[int], float], max_steps: int,
+                   refinements: int) -> tuple[np.ndarray, np.ndarray, int, bool]:
+    """Bracket the least value of ``criterion`` on the integers i, |i| <= max_steps h, where
+    h = 2^refinements is the coarse grid's spacing, and refine the bracket.
+
+    Walk: evaluate 0 and h, then walk towards the lower side h at a time until the criterion
+    does not fall (after h did not fall, -h first decides the side). Refine: ``refinements``
+    times halve the spacing and evaluate the two points that far either side of the least
+    one, which moves to the least of the three (a tie keeps it). Each point is evaluated once.
+    A walk stopped at the bound is not refined.
+
+    Returns:
+      (offsets (D,), values (D,), best, at_edge): the evaluated integers, increasing, their
+      values, the index of the least one found (a tie goes to the one the walk or the
+      refinement reached first) and whether the walk stopped at |i| = max_steps h. Unless
+      at_edge, best - 1 and best + 1 were evaluated (the points one apart around it).
+    """
+    values: dict[int, float] = {}
+
+    def value(i: int) -> float:
+        if i not in values:
+            values[i] = float(criterion(i))
+        return values[i]
+
+    spacing = 2 ** refinements
+    best, direction = 0, spacing
+    value(0)
+    if not value(spacing) < value(0):
+        direction = -spacing
+    while abs(best + direction) <= max_steps * spacing and \
+            value(best + direction) < value(best):
+        best += direction
+    at_edge = abs(best) == max_steps * spacing
+    while not at_edge and spacing > 1:
+        spacing //= 2
+        best = min((best, best - spacing, best + spacing), key=value)
+    offsets = sorted(values)
+    return (np.asarray(offsets), np.asarray([values[i] for i in offsets], np.float64),
+            offsets.index(best), at_edge)
 
 
 def parabola_vertex(x, y) -> float:
@@ -100,41 +170,48 @@ def profile_point(start, path, moves, z, landmark_of_obs, params: Params,
                   rounds: int = smoothing.VARIANCE_ROUNDS) -> smoothing.Smoothed:
     """The smoother on measured ``moves`` (T, 3) from ``path`` (T, 3) with the associations
     ``landmark_of_obs`` (T, K) of observations ``z`` (T, K, 2), its noise groups re-estimated
-    ``rounds`` times; its ``neg2_log_likelihood`` is l(d) for the delay ``moves`` carry."""
+    ``rounds`` times (``PROFILE_ITERATIONS``, ``PROFILE_TOL``); its ``neg2_log_likelihood``
+    is l(d) for the delay ``moves`` carry."""
     return smoothing.smooth_path(np.asarray(start, np.float64), path,
                                  np.asarray(moves, np.float64), np.asarray(z, np.float64),
-                                 landmark_of_obs, params, calibrate_rounds=rounds)
+                                 landmark_of_obs, params, iterations=PROFILE_ITERATIONS,
+                                 tol=PROFILE_TOL, calibrate_rounds=rounds)
 
 
 def fit_command_delay(moves_at: Callable[[float], np.ndarray], start, path, z, landmark_of_obs,
-                      params: Params, delays=DEFAULT_DELAYS) -> DelayFit:
-    """``DelayFit`` of the profile likelihood over ``delays`` (module docstring).
+                      params: Params, step: float = DEFAULT_STEP, start_delay: float = 0.0,
+                      max_shift: float = DEFAULT_MAX_SHIFT,
+                      refinements: int = DEFAULT_REFINEMENTS) -> DelayFit:
+    """``DelayFit`` of the profile likelihood, searched from ``start_delay`` (module docstring).
 
     Args:
       moves_at: delay [s] -> (T, 3) measured moves (rot1, trans, rot2) with the controls
         applied that much later, on the log's own steps.
       start: (3,) start pose; path: (T, 3) the history the smoother starts from.
       z: (T, K, 2) observations; landmark_of_obs: (T, K) their landmark, -1 for none.
-      params: the noise the scales multiply (the calibrated ``Params``).
-      delays: (D,) candidates [s], D >= 3, increasing.
+      params: the noise the scales multiply.
+      step: the walk's grid [s] (> 0); start_delay: where it starts [s]; max_shift: how
+        far from the start it may walk [s] (>= step); refinements: how often the bracket's
+        spacing is halved (>= 0).
     """
-    candidates = check_delays(delays)
-    values, scales = [], []
-    for delay in candidates:
-        smoothed = profile_point(start, path, moves_at(float(delay)), z, landmark_of_obs,
-                                 params)
-        values.append(smoothed.neg2_log_likelihood)
-        scales.append(np.asarray(smoothed.noise_scales, np.float64))
-    values = np.asarray(values, np.float64)
-    if not np.all(np.isfinite(values)):
-        raise ValueError(f"the profile likelihood is not finite at delays "
-                         f"{candidates[~np.isfinite(values)].tolist()} s: check the moves "
-                         "moves_at returns there")
-    best = int(np.argmin(values))
-    at_edge = best in (0, len(candidates) - 1)
-    delay = (float(candidates[best]) if at_edge else
-             parabola_vertex(candidates[best - 1:best + 2], values[best - 1:best + 2]))
-    return DelayFit(delay, candidates, values, np.stack(scales), at_edge)
+    max_steps = check_search(start_delay, step, max_shift, refinements)
+    spacing = step / 2 ** refinements  # [s] between the finest candidates
+    scales = {}
+
+    def criterion(offset: int) -> float:
+        delay = float(start_delay) + offset * spacing
+        smoothed = profile_point(start, path, moves_at(delay), z, landmark_of_obs, params)
+        scales[offset] = np.asarray(smoothed.noise_scales, np.float64)
+        if not np.isfinite(smoothed.neg2_log_likelihood):
+            raise ValueError(f"the profile likelihood is not finite at delay {delay:.6g} s: "
+                             "check the moves moves_at returns there")
+        return smoothed.neg2_log_likelihood
+
+    offsets, values, best, at_edge = search_minimum(criterion, max_steps, refinements)
+    delays = float(start_delay) + offsets * spacing
+    delay = (float(delays[best]) if at_edge else
+             parabola_vertex(delays[best - 1:best + 2], values[best - 1:best + 2]))
+    return DelayFit(delay, delays, values, np.stack([scales[i] for i in offsets]), at_edge)
 
 
 def _check_odometry(log, delay) -> None:
@@ -145,8 +222,10 @@ def _check_odometry(log, delay) -> None:
                          "(datasets.integrate_controls) and give motion_model='odometry'")
 
 
-def fit_log_command_delay(log_at: Callable, config: FilterConfig, key, params: Params,
-                          delays=DEFAULT_DELAYS, start_delay: float = 0.0) -> DelayFit:
+def fit_log_command_delay(log_at: Callable, config: FilterConfig, key,
+                          params: Params | None = None, step: float = DEFAULT_STEP,
+                          start_delay: float = 0.0, max_shift: float = DEFAULT_MAX_SHIFT,
+                          refinements: int = DEFAULT_REFINEMENTS) -> DelayFit:
     """``fit_command_delay`` of a log that its loader can rebuild at any delay.
 
     Args:
@@ -154,17 +233,34 @@ def fit_log_command_delay(log_at: Callable, config: FilterConfig, key, params: P
         controls applied that much later, on the same steps and with the same observations
         (``mrclam_log(..., command_delay=d)``); only its controls are read at each candidate.
       config: the ``FilterConfig`` of the run that gives the associations.
-      key: its PRNG key; params: its ``Params`` (calibrated at ``start_delay``).
-      delays: the candidates [s]; start_delay: the delay of the run that gives the
-        associations (0: the log as stamped).
+      key: its PRNG key.
+      params: the calibration's starting point (default ``starting_params(config)``); the
+        run takes them as ``calibrate_params``' first EM run on the log at ``start_delay``
+        does, with ``association_heading_std`` from their motion noise on it
+        (``with_typical_heading_std``), so no calibration is needed before the fit. The
+        smoother's scales multiply them. A second pass gives the ``Params`` calibrated at a
+        first fit.
+      step, max_shift, refinements: the search's grid and reach [s] and its refinements
+        (``fit_command_delay``);
+      start_delay: the delay of the run that gives the associations and where the search
+        starts [s] (0: the log as stamped).
     """
     from jaxslam import pipeline
-    from jaxslam.calibration_bootstrap import log_solution
+    from jaxslam.self_calibration import (best_history, confirmed_ids, history_associations,
+                                          starting_params, with_typical_heading_std)
 
+    check_search(start_delay, step, max_shift, refinements)
     first = log_at(float(start_delay))
     _check_odometry(first, start_delay)
     config, controls, observations, start = pipeline.log_inputs(first, config)
-    solution = log_solution(config, key, params, controls, observations, start)
+    valid = np.asarray(observations.valid)
+    params = with_typical_heading_std(starting_params(config) if params is None else params,
+                                      np.asarray(controls, np.float64),
+                                      np.asarray(observations.z)[valid][:, 0])
+    final, trace = run_filter(config, key, params, controls, observations,
+                              jnp.asarray(start, params.rot1_noise.dtype), record_lineage=True)
+    history = best_history(trace.lineage, final.log_weight)
+    landmark_of_obs = confirmed_ids(history_associations(history, valid))
     steps = np.asarray(controls).shape[0]
 
     def moves_at(delay: float) -> np.ndarray:
@@ -176,5 +272,6 @@ def fit_log_command_delay(log_at: Callable, config: FilterConfig, key, params: P
                              f"{start_delay} s {steps}: a delayed log must keep the steps")
         return moves
 
-    return fit_command_delay(moves_at, start, solution.path, observations.z,
-                             solution.landmark_of_obs, params, delays)
+    return fit_command_delay(moves_at, start, np.asarray(history.pose, np.float64),
+                             observations.z, landmark_of_obs, params, step, start_delay,
+                             max_shift, refinements)

@@ -252,13 +252,20 @@ def defensive_bursts(config: FilterConfig) -> tuple[float, float]:
     return 0.0, float(defaults.motion_outlier_scale)
 
 
-def _best_history(lineage_record: lineage.Lineage, log_weight) -> lineage.LineagePath:
+def best_history(lineage_record: lineage.Lineage, log_weight) -> lineage.LineagePath:
     """``trace_lineage`` of the best particle: the first of the highest final log weight
     (``filter.estimate``)."""
     return _trace_lineage(lineage_record, int(np.argmax(np.asarray(log_weight))))
 
 
-def _confirmed_ids(ids):
+def history_associations(history: lineage.LineagePath, valid) -> np.ndarray:
+    """(T, K) landmark ids of one particle's history (``lineage.landmark_identities``), -1
+    where ``valid`` (T, K) marks no observation."""
+    ids, _ = lineage.landmark_identities(history.match, history.birth_slot)
+    return np.where(np.asarray(valid), np.asarray(ids), -1)
+
+
+def confirmed_ids(ids):
     """(T, K) landmark ids with landmarks seen once dropped (-1) and the rest renumbered.
 
     A landmark seen once has no residual (its position fits its one observation exactly),
@@ -406,10 +413,9 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
     again with the merged association before the fit (``landmark_merge``). With
     ``calibrate_radius`` also the trunk-radius std (``_radius_update``), kept apart: EM's
     runs match without it (``_with_radius`` applies it after EM)."""
-    ids, _ = lineage.landmark_identities(history.match, history.birth_slot)
-    ids = np.where(log.valid, np.asarray(ids), -1)
+    ids = history_associations(history, log.valid)
     false_alarms = single_share(ids)
-    ids = _confirmed_ids(ids)
+    ids = confirmed_ids(ids)
     if not np.any(ids >= 0):
         return ("no landmark was observed twice with the starting settings: nothing to "
                 "calibrate on, the given settings are used")
@@ -818,7 +824,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                 progress(_stalled_line(done, objective, dropped, patience, fill_steps))
             break
         step = _m_step(config, params, log, odometry,
-                       _best_history(trace.lineage, final.log_weight), done, calibrate_sensor,
+                       best_history(trace.lineage, final.log_weight), done, calibrate_sensor,
                        smoother_iterations, merge_landmarks, fit_radius)
         if isinstance(step, str):
             warnings.append(step)

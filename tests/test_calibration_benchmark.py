@@ -44,38 +44,43 @@ def test_robots_option_benches_each_named_robot(load_benchmark, tmp_path, monkey
     assert calls == [("MRCLAM robot 2", "log of robot 2"), ("MRCLAM robot 4", "log of robot 4")]
 
 
-def test_command_delay_auto_times_the_fit_and_both_calibrations(load_benchmark, tmp_path,
-                                                                 monkeypatch, capsys):
-    """``--command-delay auto``: per robot the stamped log's calibration, the lag fit from its
-    Params, the calibration at the fitted lag, and their sum over the stamped log's filter
-    run (the data, the fit and ``bench`` stubbed: 10 s calibrations, a 2 s filter run)."""
+def test_command_delay_auto_times_the_fit_and_the_calibration_at_the_lag(
+        load_benchmark, tmp_path, monkeypatch, capsys):
+    """``--command-delay auto``: per robot the stamped log's filter run (the unit), the lag fit
+    with its default settings, the calibration at the fitted lag, and their sum over the unit
+    (the data, the filter timing, the fit and ``bench`` stubbed: a 2 s filter run, a 10 s
+    calibration)."""
     import numpy as np
 
     from jaxslam import command_delay, pipeline
     from jaxslam.datasets import mrclam, mrclam_convert
 
     benchmark = load_benchmark("calibration")
-    calls, fits = [], []
+    calls, fits, timed = [], [], []
     monkeypatch.setattr(benchmark, "bench", lambda name, log, *args, **kwargs: (
         calls.append((name, log)) or (10.0, 2.0, f"params of {name}")))
+    monkeypatch.setattr(benchmark, "filter_seconds", lambda *args: (
+        timed.append(args[:2]) or (5.0, 2.0)))
+    monkeypatch.setattr(benchmark, "starting_params", lambda config: "first settings")
     monkeypatch.setattr(mrclam, "read_mrclam", lambda folder, robot: robot)
     monkeypatch.setattr(mrclam_convert, "mrclam_steps", lambda raw, max_obs: raw)
     monkeypatch.setattr(mrclam_convert, "mrclam_log",
                         lambda raw, steps, command_delay: (raw, command_delay))
-    monkeypatch.setattr(pipeline, "log_inputs", lambda log, config: (log,))
+    monkeypatch.setattr(pipeline, "log_inputs", lambda log, config: (log, "inputs"))
 
-    def fit(log_at, config, key, params):
-        fits.append((log_at(0.5), params))
-        return command_delay.DelayFit(0.25, np.array([0.0, 0.25, 0.5]), np.zeros(3),
+    def fit(log_at, config, key):
+        fits.append(log_at(0.5))
+        return command_delay.DelayFit(0.25, np.array([0.0, 0.2, 0.4]), np.zeros(3),
                                       np.ones((3, 4)), False)
 
     monkeypatch.setattr(command_delay, "fit_log_command_delay", fit)
     benchmark.main(["--only", "mrclam", "--mrclam", str(tmp_path), "--robots", "3",
                     "--command-delay", "auto"])
-    assert calls == [("MRCLAM robot 3, as stamped", (3, 0.0)),
-                     ("MRCLAM robot 3, commands +0.250 s late", (3, 0.25))]
-    assert fits == [((3, 0.5), "params of MRCLAM robot 3, as stamped")]
+    assert timed == [((3, 0.0), "inputs")]  # the unit: a filter run of the log as stamped
+    assert fits == [(3, 0.5)]
+    assert calls == [("MRCLAM robot 3, commands +0.250 s late", (3, 0.25))]
     out = capsys.readouterr().out
-    # 10 s + the stub fit's few microseconds + 10 s over the 2 s filter run
-    assert "calibration 5.0x + fit 0.0 s (0.0x) + calibration at 0.250 s 5.0x = 20.0 s, " \
-           "10.0x one filter run of the log as stamped" in out
+    assert "lag fit 0.00 s (0.250 s from 3 candidates)" in out
+    # the stub fit's few microseconds + 10 s over the 2 s filter run
+    assert "fit 0.0 s (0.0x) + calibration at 0.250 s 5.0x = 10.0 s, " \
+           "5.0x one filter run of the log as stamped" in out

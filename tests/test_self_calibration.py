@@ -335,7 +335,7 @@ def test_best_history_matches_trace_lineage():
     tied[[2, 4]] = 1.0  # two best particles: the first one (argmax), as ``estimate``
     for log_weight in (rng.normal(size=num), tied):
         want = lineage.trace_lineage(record, jnp.argmax(jnp.asarray(log_weight)))
-        got = sc._best_history(record, jnp.asarray(log_weight))
+        got = sc.best_history(record, jnp.asarray(log_weight))
         for name in want._fields:
             np.testing.assert_array_equal(getattr(got, name), np.asarray(getattr(want, name)))
 
