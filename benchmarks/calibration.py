@@ -20,8 +20,8 @@ calibration takes about 4.5-5.5 minutes on 2 cores) when their folders are given
 
 ``--command-delay auto`` times MRCLAM as ``experiments/mrclam.py`` runs it by default: the
 commands' lag fitted from the log (``command_delay.fit_log_command_delay``: one filter run
-with the calibration's first settings and five smoothings when the lag lies within 0.2 s of
-0), and the calibration of the log rebuilt at the fitted lag; one more line gives each part
+with the calibration's first settings and five smoothings for a lag between about -0.1 and
+0.3 s), and the calibration of the log rebuilt at the fitted lag; one more line gives each part
 and their sum as multiples of one filter run of the log as stamped (compiled before the fit).
 
 How to read a line:

@@ -27,21 +27,23 @@ commands, applied d late, fit one path. The scales are the variance components' 
 after ``VARIANCE_ROUNDS`` rounds (each group's chi-square over its redundancy, a REML-type
 rule, not iterated to convergence), the same rule at every candidate.
 
-Search. Each l(d) costs a smoothing, so the candidates are not a fixed grid: from the start
-delay the search walks downhill on a grid of ``step`` seconds until l rises
-(``bracket_minimum``), three smoothings when the lag lies within a step of the start, and the
-delay is the vertex of the parabola through the least candidate and its two neighbours. It
-stops at ``max_shift`` from the start, and ``DelayFit.at_edge`` flags a least candidate
-there. On MRCLAM's five robots (docs/results.md, mrclam) the profile is unimodal over
--0.2..0.6 s, and the vertex of the 0.2 s bracket lands within 0.01 s of the vertex of a
-0.1 s grid. Nothing here looks at ground truth.
+Search (``search_minimum``). Each l(d) costs a smoothing, so the candidates are not a fixed
+grid: from the start delay the search walks downhill in steps of ``step`` seconds until l
+rises, halves the spacing ``refinements`` times around the least candidate (two more
+smoothings each), and the delay is the vertex of the parabola through the least candidate
+and its two neighbours. With the defaults (0.2 s, one halving) that is five smoothings for a
+lag between about -0.1 and 0.3 s from the start, one more for each further 0.2 s. The walk
+stops ``floor(max_shift / step)`` steps from the start, and ``DelayFit.at_edge`` flags a
+least candidate there. On MRCLAM's five robots (docs/results.md, mrclam) the profile is
+unimodal over -0.2..0.6 s. Nothing here looks at ground truth.
 
 The associations come from one run at ``start_delay`` (0: the log as stamped). Where a large
 lag makes that run split trees, the associations can bias the profile towards the start
 delay; a second pass from the first fit (``start_delay`` and its calibrated ``Params``)
 would show it. Not done by default: on simulated logs with a 0.27 s lag the first pass
-lands within 0.03 s of it, and MRCLAM's first and second passes differ by 0.00-0.03 s
-(docs/results.md, mrclam), where Vicon puts the lag at about 0.2 s.
+lands within 0.03 s of it, and on MRCLAM, where Vicon puts the lag at about 0.2 s, a second
+pass moved the twenty-second session's fits (a fixed grid, calibrated associations) by
+0.00-0.03 s (docs/results.md, mrclam).
 
 Everything here is host-side NumPy float64 (the filter run is JAX).
 """
@@ -62,14 +64,15 @@ from jaxslam.types import FilterConfig, Params
 DEFAULT_STEP = 0.2
 DEFAULT_MAX_SHIFT = 1.0
 # Halvings of the bracket's spacing: 0.1 s between the candidates the parabola goes through.
-# Its vertex through candidates 0.2 s apart sat 0.06-0.09 s short of a simulated 0.27 s lag
-# (the profile is not a parabola over 0.4 s); 0.1 s apart, within 0.01 s.
+# Its vertex through candidates 0.2 s apart sat 0.075-0.089 s short of a simulated 0.27 s lag
+# (tests/test_command_delay.py's world, seeds 0-3: the profile is not a parabola over
+# 0.4 s); 0.1 s apart, within 0.01 s.
 DEFAULT_REFINEMENTS = 1
 
 # The smoother's settings at each candidate: the calibration's M-step's (``calibrate_params``'
-# ``smoother_iterations`` default and its tolerance). On MRCLAM robot 2 they move l(d) by
-# under 25 (0.2% of its differences between candidates 0.2 s apart) against 30 steps at
-# 1e-6, at 0.4 of the time.
+# ``smoother_iterations`` default and its tolerance). On MRCLAM robot 2 (as stamped, at 0,
+# 0.2 and 0.4 s) they moved l(d) by 5-20 and its differences between those candidates
+# (8,771 and 4,272) by under 0.4 %, against 30 steps at 1e-6, at 0.4 of the time.
 PROFILE_ITERATIONS = 15
 PROFILE_TOL = 1e-4
 
@@ -79,12 +82,13 @@ class DelayFit(NamedTuple):
 
     Attributes:
       delay: the fitted delay [s] (the controls apply this much later than stamped).
-      delays: (D,) the candidates the search evaluated [s], increasing, ``step`` apart.
+      delays: (D,) the candidates the search evaluated [s], increasing: ``step`` apart where
+        it walked, step / 2^refinements apart around the least one.
       neg2_log_likelihood: (D,) l(d) at each candidate (module docstring).
       noise_scales: (D, 4) the smoother's re-estimated scales (heading, translation, range,
         bearing) at each candidate, relative to the ``Params`` given.
-      at_edge: the least l(d) lies at the search's bound (``max_shift`` from the start): the
-        delay may lie beyond it.
+      at_edge: the least l(d) lies at the search's bound (``floor(max_shift / step)`` steps
+        from the start): the delay may lie beyond it.
     """
 
     delay: float
@@ -94,9 +98,10 @@ class DelayFit(NamedTuple):
     at_edge: bool
 
 
-def check_search(start_delay, step, max_shift, refinements) -> int:
-    """The most steps the walk may take from ``start_delay``, or ValueError: finite values,
-    step > 0, max_shift >= step and an integer refinements >= 0."""
+def search_steps(start_delay, step, max_shift, refinements) -> int:
+    """The most steps the walk may take from ``start_delay``, floor(max_shift / step), after
+    checking the search's settings: ValueError unless they are finite, step > 0,
+    max_shift >= step and refinements an integer >= 0."""
     values = (start_delay, step, max_shift)
     if not all(np.isfinite(v) for v in values) or not step > 0 or not max_shift >= step:
         raise ValueError(f"start_delay={start_delay!r}, step={step!r}, "
@@ -108,23 +113,37 @@ def check_search(start_delay, step, max_shift, refinements) -> int:
     return int(math.floor(max_shift / step + 1e-9))
 
 
+class Search(NamedTuple):
+    """Result of ``search_minimum``.
+
+    Attributes:
+      offsets: (D,) int the evaluated integers, increasing.
+      values: (D,) the criterion there.
+      best: index into ``offsets`` of the least value found (a tie goes to the point the
+        walk or the refinement reached first).
+      at_edge: the walk stopped at |i| = max_steps 2^refinements, not at a rise. Unless
+        at_edge, offsets[best] - 1 and offsets[best] + 1 were evaluated.
+    """
+
+    offsets: np.ndarray
+    values: np.ndarray
+    best: int
+    at_edge: bool
+
+
 def search_minimum(criterion: Callable[[int], float], max_steps: int,
-                   refinements: int) -> tuple[np.ndarray, np.ndarray, int, bool]:
+                   refinements: int) -> Search:
     """Bracket the least value of ``criterion`` on the integers i, |i| <= max_steps h, where
     h = 2^refinements is the coarse grid's spacing, and refine the bracket.
 
     Walk: evaluate 0 and h, then walk towards the lower side h at a time until the criterion
     does not fall (after h did not fall, -h first decides the side). Refine: ``refinements``
     times halve the spacing and evaluate the two points that far either side of the least
-    one, which moves to the least of the three (a tie keeps it). Each point is evaluated once.
-    A walk stopped at the bound is not refined.
-
-    Returns:
-      (offsets (D,), values (D,), best, at_edge): the evaluated integers, increasing, their
-      values, the index of the least one found (a tie goes to the one the walk or the
-      refinement reached first) and whether the walk stopped at |i| = max_steps h. Unless
-      at_edge, best - 1 and best + 1 were evaluated (the points one apart around it).
+    one, which moves to the least of the three (a tie keeps it, then prefers the left one).
+    Each point is evaluated once. A walk stopped at the bound is not refined. max_steps >= 1.
     """
+    if max_steps < 1:
+        raise ValueError(f"max_steps={max_steps}: the walk needs at least one step")
     values: dict[int, float] = {}
 
     def value(i: int) -> float:
@@ -145,8 +164,8 @@ def search_minimum(criterion: Callable[[int], float], max_steps: int,
         spacing //= 2
         best = min((best, best - spacing, best + spacing), key=value)
     offsets = sorted(values)
-    return (np.asarray(offsets), np.asarray([values[i] for i in offsets], np.float64),
-            offsets.index(best), at_edge)
+    return Search(np.asarray(offsets), np.asarray([values[i] for i in offsets], np.float64),
+                  offsets.index(best), at_edge)
 
 
 def parabola_vertex(x, y) -> float:
@@ -194,9 +213,9 @@ def fit_command_delay(moves_at: Callable[[float], np.ndarray], start, path, z, l
         far from the start it may walk [s] (>= step); refinements: how often the bracket's
         spacing is halved (>= 0).
     """
-    max_steps = check_search(start_delay, step, max_shift, refinements)
+    max_steps = search_steps(start_delay, step, max_shift, refinements)
     spacing = step / 2 ** refinements  # [s] between the finest candidates
-    scales = {}
+    scales = {}  # offset -> (4,) the smoother's scales there, filled by ``criterion``
 
     def criterion(offset: int) -> float:
         delay = float(start_delay) + offset * spacing
@@ -237,9 +256,10 @@ def fit_log_command_delay(log_at: Callable, config: FilterConfig, key,
       params: the calibration's starting point (default ``starting_params(config)``); the
         run takes them as ``calibrate_params``' first EM run on the log at ``start_delay``
         does, with ``association_heading_std`` from their motion noise on it
-        (``with_typical_heading_std``), so no calibration is needed before the fit. The
-        smoother's scales multiply them. A second pass gives the ``Params`` calibrated at a
-        first fit.
+        (``with_typical_heading_std``), so no calibration is needed before the fit; their
+        ``radius_noise`` is kept (the calibration's EM matches without one on logs with
+        trunk radii). The smoother's scales multiply them. A second pass gives the
+        ``Params`` calibrated at a first fit.
       step, max_shift, refinements: the search's grid and reach [s] and its refinements
         (``fit_command_delay``);
       start_delay: the delay of the run that gives the associations and where the search
@@ -249,7 +269,7 @@ def fit_log_command_delay(log_at: Callable, config: FilterConfig, key,
     from jaxslam.self_calibration import (best_history, confirmed_ids, history_associations,
                                           starting_params, with_typical_heading_std)
 
-    check_search(start_delay, step, max_shift, refinements)
+    search_steps(start_delay, step, max_shift, refinements)
     first = log_at(float(start_delay))
     _check_odometry(first, start_delay)
     config, controls, observations, start = pipeline.log_inputs(first, config)

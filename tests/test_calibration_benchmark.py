@@ -57,10 +57,11 @@ def test_command_delay_auto_times_the_fit_and_the_calibration_at_the_lag(
 
     benchmark = load_benchmark("calibration")
     calls, fits, timed = [], [], []
+    # bench's own filter run (4 s) differs from the unit (2 s): the sum must use the unit
     monkeypatch.setattr(benchmark, "bench", lambda name, log, *args, **kwargs: (
-        calls.append((name, log)) or (10.0, 2.0, f"params of {name}")))
+        calls.append((name, log)) or (10.0, 4.0, f"params of {name}")))
     monkeypatch.setattr(benchmark, "filter_seconds", lambda *args: (
-        timed.append(args[:2]) or (5.0, 2.0)))
+        timed.append(args[:3]) or (5.0, 2.0)))
     monkeypatch.setattr(benchmark, "starting_params", lambda config: "first settings")
     monkeypatch.setattr(mrclam, "read_mrclam", lambda folder, robot: robot)
     monkeypatch.setattr(mrclam_convert, "mrclam_steps", lambda raw, max_obs: raw)
@@ -76,7 +77,8 @@ def test_command_delay_auto_times_the_fit_and_the_calibration_at_the_lag(
     monkeypatch.setattr(command_delay, "fit_log_command_delay", fit)
     benchmark.main(["--only", "mrclam", "--mrclam", str(tmp_path), "--robots", "3",
                     "--command-delay", "auto"])
-    assert timed == [((3, 0.0), "inputs")]  # the unit: a filter run of the log as stamped
+    # the unit: a filter run of the log as stamped with the calibration's first settings
+    assert timed == [((3, 0.0), "inputs", "first settings")]
     assert fits == [(3, 0.5)]
     assert calls == [("MRCLAM robot 3, commands +0.250 s late", (3, 0.25))]
     out = capsys.readouterr().out

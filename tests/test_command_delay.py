@@ -132,13 +132,13 @@ def test_parabola_vertex_edges():
                           (0.0, 0.2, 1.0, 0.5), (0.0, 0.2, 1.0, True)])
 def test_bad_search_settings_are_named(start, step, max_shift, refinements):
     with pytest.raises(ValueError, match="expected"):
-        cd.check_search(start, step, max_shift, refinements)
+        cd.search_steps(start, step, max_shift, refinements)
 
 
 def test_search_reach():
-    assert cd.check_search(0.0, cd.DEFAULT_STEP, cd.DEFAULT_MAX_SHIFT,
+    assert cd.search_steps(0.0, cd.DEFAULT_STEP, cd.DEFAULT_MAX_SHIFT,
                            cd.DEFAULT_REFINEMENTS) == 5
-    assert cd.check_search(0.3, 0.1, 0.3, 0) == 3  # 0.3 / 0.1 rounds below 3 in floats
+    assert cd.search_steps(0.3, 0.1, 0.3, 0) == 3  # 0.3 / 0.1 rounds below 3 in floats
 
 
 class Counted:
@@ -152,18 +152,19 @@ class Counted:
         return self.function(i)
 
 
-@pytest.mark.parametrize("vertex, expected_points", [
-    (2.7, [0, 1, 2, 3, 4]),              # walk right one coarse step, refine around 2
-    (-5.5, [-8, -7, -6, -5, -4, -2, 0, 2]),  # walk left three coarse steps, refine at -6
-    (0.3, [-2, -1, 0, 1, 2]),            # bracketed at once, refined around 0
+@pytest.mark.parametrize("vertex, expected_points, expected_best", [
+    (2.7, [0, 1, 2, 3, 4], 3),                  # walk right one coarse step, refine around 2
+    (-5.5, [-8, -7, -6, -5, -4, -2, 0, 2], -6),  # walk left three coarse steps, refine at -6;
+                                                # -5 ties -6 and the walk reached -6 first
+    (0.3, [-2, -1, 0, 1, 2], 0),                # bracketed at once, refined around 0
 ])
-def test_search_brackets_and_refines_a_parabola(vertex, expected_points):
+def test_search_brackets_and_refines_a_parabola(vertex, expected_points, expected_best):
     criterion = Counted(lambda i: (i - vertex) ** 2)
     offsets, values, best, at_edge = cd.search_minimum(criterion, max_steps=5, refinements=1)
     assert offsets.tolist() == expected_points
     assert sorted(criterion.asked) == expected_points  # each point evaluated once
     np.testing.assert_allclose(values, (offsets - vertex) ** 2, rtol=0, atol=0)
-    assert offsets[best] == round(vertex) and not at_edge
+    assert offsets[best] == expected_best and not at_edge
     # the parabola through the least point and its neighbours is the criterion itself
     assert cd.parabola_vertex(offsets[best - 1:best + 2],
                               values[best - 1:best + 2]) == pytest.approx(vertex, abs=1e-12)
@@ -189,6 +190,18 @@ def test_search_stops_at_its_bound():
 def test_search_on_a_flat_criterion_stays_at_the_start():
     offsets, _, best, at_edge = cd.search_minimum(lambda i: 1.0, max_steps=4, refinements=1)
     assert offsets.tolist() == [-2, -1, 0, 1, 2] and offsets[best] == 0 and not at_edge
+
+
+def test_search_refinement_tie_goes_left():
+    # 0 brackets (its coarse neighbours +-2 are higher); -1 and 1 tie below it
+    search = cd.search_minimum(lambda i: {0: 1.0, -1: 0.5, 1: 0.5}.get(i, 2.0), max_steps=2,
+                               refinements=1)
+    assert search.offsets[search.best] == -1 and not search.at_edge
+
+
+def test_search_needs_a_step():
+    with pytest.raises(ValueError, match="max_steps=0"):
+        cd.search_minimum(lambda i: float(i), max_steps=0, refinements=1)
 
 
 # ---------------------------------------------------------------------------------------------
