@@ -49,7 +49,7 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam import metrics, pipeline
-from jaxslam.command_delay import fit_log_command_delay
+from jaxslam.command_delay import command_delay_choice, fit_log_command_delay
 from jaxslam.datasets.mrclam import read_mrclam
 from jaxslam.datasets.mrclam_convert import DEFAULT_MAX_OBS, mrclam_log, mrclam_steps
 from jaxslam.datasets.odometry import odometry_path
@@ -164,17 +164,12 @@ def main(argv=None):
 
 
 def delay_argument(text: str):
-    """``--command-delay``'s value: "auto" or a finite number of seconds."""
-    if text == "auto":
-        return text
+    """``--command-delay``'s value: "auto" or a finite number of seconds
+    (``command_delay_choice``)."""
     try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not np.isfinite(value):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected 'auto' or a finite number of "
-                                         "seconds")
-    return value
+        return command_delay_choice(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from error
 
 
 def fitted_delay(raw, steps, config: FilterConfig, seed: int, params) -> float:

@@ -295,3 +295,29 @@ def fit_log_command_delay(log_at: Callable, config: FilterConfig, key,
     return fit_command_delay(moves_at, start, np.asarray(history.pose, np.float64),
                              observations.z, landmark_of_obs, params, step, start_delay,
                              max_shift, refinements)
+
+
+def command_delay_choice(text: str):
+    """A command-line command delay: "auto" (fit it from the log), or a finite number of
+    seconds as a float; ValueError naming the expected forms otherwise."""
+    if text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not np.isfinite(value):
+        raise ValueError(f"{text!r}: expected 'auto' or a finite number of seconds")
+    return value
+
+
+def log_at_command_delay(log, config: FilterConfig, key, command_delay,
+                         params: Params | None = None):
+    """(log, fit): a ``RobotLog`` that holds its command stream rebuilt with the commands
+    ``command_delay`` seconds late (``RobotLog.at_command_delay``), or for "auto" at the
+    delay ``fit_log_command_delay`` fits from it (key ``key``, starting point ``params``);
+    fit is that ``DelayFit``, None for a number given."""
+    if command_delay == "auto":
+        fit = fit_log_command_delay(log.at_command_delay, config, key, params)
+        return log.at_command_delay(fit.delay), fit
+    return log.at_command_delay(float(command_delay)), None

@@ -610,3 +610,44 @@ def test_em_patience_option_reaches_the_calibration():
         _calibration_options(argparse.Namespace(em_patience=-1, no_scale_search=False))
     with pytest.raises(UsageError, match="--search-workers must be a positive number"):
         _calibration_options(argparse.Namespace(em_patience=2, search_workers=0))
+
+
+def test_run_and_calibrate_with_the_commands_lag(tmp_path, monkeypatch, capsys):
+    """``--command-delay``: a log that carries its commanded velocities (the simulated
+    unicycle of tests/test_command_delay.py, 0.27 s late) is rebuilt at a given lag or at
+    the lag fitted from it; the run records it in metrics.json and the params file names it.
+    A log without a command stream is refused by name."""
+    import json
+
+    from jaxslam.datasets.log_format import save_log
+    from tests.test_command_delay import TRUE_DELAY, DelayedWorld
+
+    monkeypatch.setenv("JAXSLAM_CACHE_DIR", str(tmp_path / "cache"))
+    save_log(tmp_path / "log.npz", DelayedWorld().stamped_log())
+    small = ["--set", "filter.num_particles=30", "--set", "filter.max_landmarks=40"]
+    try:
+        status = cli.main(["run", "--data", str(tmp_path / "log.npz"), "--out",
+                           str(tmp_path / "out"), "--command-delay", "auto",
+                           "--no-calibrate", *small])
+        out = capsys.readouterr().out
+        assert status == 0 and "command delay fitted from the log" in out
+        fitted = json.loads((tmp_path / "out" / "metrics.json").read_text())["metrics"][
+            "command_delay"]
+        # as tests/test_command_delay.py's end-to-end fit, from the default settings here
+        assert abs(fitted - TRUE_DELAY) < 0.03, fitted
+        status = cli.main(["calibrate", "--data", str(tmp_path / "log.npz"), "--out",
+                           str(tmp_path / "params.toml"), "--command-delay", "0.27",
+                           "--no-scale-search", *small])
+        out = capsys.readouterr().out
+        assert status == 0 and "commands +0.270 s late" in out
+        assert "--command-delay 0.270" in out  # how to reuse the file
+        assert "run with --command-delay 0.270" in (tmp_path / "params.toml").read_text()
+        save_log(tmp_path / "plain.npz", _straight_log())
+        status = cli.main(["run", "--data", str(tmp_path / "plain.npz"), "--command-delay",
+                           "0.2", "--no-calibrate", *small])
+        assert status == 2 and "has no command stream" in capsys.readouterr().err
+        with pytest.raises(SystemExit):
+            cli.main(["run", "--data", str(tmp_path / "log.npz"), "--command-delay", "soon"])
+        assert "expected 'auto' or a finite number of seconds" in capsys.readouterr().err
+    finally:
+        _reset_cache_config()

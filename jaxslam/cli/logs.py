@@ -162,7 +162,8 @@ def _run_log(args) -> int:
         _print_calibration(run.calibration)
         saved = pipeline.save_params(out / "calibrated_params.toml", run.params,
                                      comment=f"calibrated from {args.data} by jaxslam run "
-                                     f"({run.calibration.verdict})")
+                                     f"({run.calibration.verdict})"
+                                     + _delay_note(run.metrics.get("command_delay")))
         print(f"wrote {saved} (reuse it with --params {saved})")
     _print_metrics(run.metrics)
     _print_warnings(run.warnings)
@@ -246,6 +247,37 @@ def _log_settings(args, log):
     return study, filter_config, params, calibrate
 
 
+def _apply_command_delay(args, log):
+    """(log, delay): ``log`` with its commands delayed by ``--command-delay`` (seconds, or
+    "auto": fitted from the log, printed with its profile) and the delay [s]; (log, None)
+    when the option was not given."""
+    import jax
+
+    from jaxslam.command_delay import log_at_command_delay
+
+    choice = getattr(args, "command_delay", None)
+    if choice is None:
+        return log, None
+    if log.command_time is None:
+        raise UsageError(f"--command-delay {choice}: {args.data} has no command stream "
+                         "('command_time' and 'commands', the commanded velocities its "
+                         "controls were integrated from; docs/log_format.md)")
+    _, filter_config, params, _ = _log_settings(args, log)
+    if choice == "auto":
+        print("fitting the commands' lag from the log (a filter run and a few smoothings) ...")
+    delayed, fit = log_at_command_delay(log, filter_config, jax.random.PRNGKey(args.seed),
+                                        choice, params)
+    if fit is None:
+        print(f"commands {choice:+.3f} s late: moves rebuilt from the command stream")
+        return delayed, float(choice)
+    profile = fit.neg2_log_likelihood - fit.neg2_log_likelihood.min()
+    print(f"command delay fitted from the log: {fit.delay:.3f} s"
+          + (" (at the search's bound: give --command-delay S)" if fit.at_edge else "")
+          + " | -2 log L above its least at "
+          + ", ".join(f"{d:+.2f} s {v:.0f}" for d, v in zip(fit.delays, profile)))
+    return delayed, fit.delay
+
+
 def _filter_log(args, log):
     """Run the pipeline over a log. Returns (example_run arrays, ``pipeline.LogRun``).
 
@@ -272,6 +304,7 @@ def _filter_log(args, log):
     if close and visit_gap is not None:
         raise UsageError("--close-loops and --visit-gap: choose one (visits are the "
                          "smoother's own soft loop closures)")
+    log, delay = _apply_command_delay(args, log)
     study, filter_config, params, calibrate = _log_settings(args, log)
     run = pipeline.filter_log(log, filter_config, params, jax.random.PRNGKey(args.seed),
                               calibrate=calibrate, smooth=smooth, visit_gap=visit_gap,
@@ -288,7 +321,15 @@ def _filter_log(args, log):
                    time=np.asarray(log.time, np.float64))
     if run.smoothed_pose is not None:
         example["smoothed_pose"] = run.smoothed_pose
+    if delay is not None:
+        run.metrics["command_delay"] = delay
     return example, run
+
+
+def _delay_note(delay) -> str:
+    """The params file's note of the command delay they were calibrated at ("" for none)."""
+    return ("" if delay is None else
+            f"; at commands {delay:.3f} s late: run with --command-delay {delay:.3f}")
 
 
 def _calibration_options(args) -> dict:
@@ -318,6 +359,7 @@ def cmd_calibrate(args) -> int:
     if args.bootstrap and args.bootstrap < 2:
         raise UsageError(f"--bootstrap needs B >= 2 replicates (about 20); got "
                          f"{args.bootstrap}")
+    log, delay = _apply_command_delay(args, log)
     if args.bootstrap and log.motion_model != "odometry":
         raise UsageError(f"--bootstrap draws odometry moves (rot1, trans, rot2); this log's "
                          f"motion model is {log.motion_model!r}")
@@ -329,8 +371,10 @@ def cmd_calibrate(args) -> int:
     _print_calibration(info)
     _print_warnings(info.warnings)
     saved = pipeline.save_params(args.out, params, comment=f"calibrated from {args.data} by "
-                                 f"jaxslam calibrate ({info.verdict})")
-    print(f"wrote {saved} (use it with: jaxslam run --data {args.data} --params {saved})")
+                                 f"jaxslam calibrate ({info.verdict})" + _delay_note(delay))
+    again = "" if delay is None else f" --command-delay {delay:.3f}"
+    print(f"wrote {saved} (use it with: jaxslam run --data {args.data} --params {saved}"
+          f"{again})")
     if args.bootstrap:
         _print_bootstrap(args, filter_config, log, start_params, params, info)
     return 0

@@ -86,6 +86,7 @@ def _add_run(sub) -> None:
                      help="with --data: run with the config's params as given (default: off: "
                           "calibrate them from the log first and save calibrated_params.toml)")
     _add_no_scale_search(run, "with --data: ")
+    _add_command_delay(run, "with --data: ")
     run.add_argument("--params", metavar="FILE",
                      help="with --data: a params TOML file (from `jaxslam calibrate` or a "
                           "previous run's calibrated_params.toml), used as it is (default: "
@@ -106,6 +107,25 @@ def _add_convert(sub) -> None:
                          help="write with numpy.savez_compressed")
     _add_topic_options(convert)
     convert.set_defaults(func=cmd_convert)
+
+
+def _command_delay(text: str):
+    """``--command-delay``'s value (``command_delay.command_delay_choice``)."""
+    from jaxslam.command_delay import command_delay_choice
+
+    try:
+        return command_delay_choice(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from error
+
+
+def _add_command_delay(parser, prefix: str = "") -> None:
+    parser.add_argument("--command-delay", type=_command_delay, default=None, metavar="S",
+                        help=f"{prefix}the log's commands act S seconds later than stamped: "
+                             "rebuild its moves from its command stream (command_time, "
+                             "commands; docs/log_format.md) with that lag, or 'auto': fit the "
+                             "lag from the log (jaxslam.fit_log_command_delay, no ground "
+                             "truth) (default: none: the log's controls as they are)")
 
 
 def _add_no_scale_search(parser, prefix: str = "") -> None:
@@ -141,6 +161,7 @@ def _add_calibrate(sub) -> None:
                                 "spread, not only the sampling error; costs B calibrations; "
                                 "odometry logs only; about 20) (default: 0: none)")
     _add_no_scale_search(calibrate)
+    _add_command_delay(calibrate)
     _add_set(calibrate)
     calibrate.set_defaults(func=cmd_calibrate)
 

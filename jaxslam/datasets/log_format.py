@@ -20,7 +20,8 @@ from jaxslam.types import MOTION_MODELS, Observations, make_observations
 FORMAT_VERSION = 1
 REQUIRED_KEYS = ("format_version", "time", "motion_model", "controls")
 OPTIONAL_KEYS = ("obs_z", "obs_valid", "obs_radius", "scan_ranges", "scan_angles",
-                 "truth_pose", "truth_landmarks", "gps_time", "gps_xy", "initial_pose")
+                 "truth_pose", "truth_landmarks", "gps_time", "gps_xy", "initial_pose",
+                 "command_time", "commands")
 EXTRA_PREFIX = "meta_"  # keys with this prefix are user metadata: kept out of RobotLog, ignored
 
 
@@ -49,6 +50,12 @@ class RobotLog(NamedTuple):
       initial_pose: (3,) pose before row 0's move (so the pose at time[0] is
         ``initial_pose (+) controls[0]``), or None for zeros.
       format_version: int, ``FORMAT_VERSION`` when written by this library.
+      command_time: (N,) seconds on the same clock as ``time``, strictly increasing: the
+        stamps of the commanded velocities the controls were integrated from, or None.
+      commands: (N, 2) commanded (v [m/s], omega [rad/s]), sample i held from
+        command_time[i] to command_time[i + 1], or None. With them the log can be rebuilt
+        with the commands acting later than stamped (``at_command_delay``), and the lag
+        fitted (``jaxslam.fit_log_command_delay``).
     """
 
     time: np.ndarray
@@ -65,11 +72,41 @@ class RobotLog(NamedTuple):
     gps_xy: np.ndarray | None = None
     initial_pose: np.ndarray | None = None
     format_version: int = FORMAT_VERSION
+    command_time: np.ndarray | None = None
+    commands: np.ndarray | None = None
 
     @property
     def num_steps(self) -> int:
         """T, the number of filter steps."""
         return int(self.time.shape[0])
+
+    def at_command_delay(self, delay: float, min_translation: float = 0.01) -> "RobotLog":
+        """This log with the commands acting ``delay`` seconds later than stamped.
+
+        controls become the odometry moves (motion_model "odometry") that
+        ``datasets.integrate_controls`` integrates from ``commands`` held from
+        ``command_time + delay`` over this log's steps (moves shorter than
+        ``min_translation`` [m] written as pure turns; the default is ``Params``'); the steps,
+        observations, start and truth stay. At delay 0 that is the command stream integrated as stamped, which may
+        differ from the stored controls if they were made another way.
+
+        Raises ``LogFormatError`` when the log has no command stream or ``delay`` is not a
+        finite number of seconds.
+        """
+        from jaxslam.datasets.odometry import integrate_controls
+
+        if self.command_time is None or self.commands is None:
+            raise LogFormatError(
+                "this log has no command stream ('command_time' and 'commands'): a command "
+                "delay needs the commanded velocities the controls were integrated from "
+                "(docs/log_format.md)")
+        if not np.isfinite(delay):
+            raise LogFormatError(f"command delay {delay!r}: expected a finite number of "
+                                 "seconds")
+        moves = integrate_controls(np.asarray(self.command_time, np.float64) + float(delay),
+                                   self.commands, self.time, "velocity",
+                                   min_translation=min_translation)
+        return self._replace(controls=moves, motion_model="odometry")
 
     def observations(self, dtype=np.float32) -> Observations:
         """The padded range-bearing observations as ``Observations`` with (T, K, ...) leaves.
@@ -250,6 +287,21 @@ def _check_truth_and_gps(source: str, log: RobotLog, steps: int) -> dict:
     return fields
 
 
+def _check_commands(source: str, log: RobotLog) -> dict:
+    if log.command_time is None:
+        return {}
+    command_time = _as_float(source, "command_time", log.command_time)
+    check_shape(source, "command_time", command_time, (None,))
+    if command_time.shape[0] < 1:
+        fail(source, "'command_time' is empty; expected at least one command")
+    check_finite(source, "command_time", command_time)
+    check_increasing(source, "command_time", command_time)
+    commands = _as_float(source, "commands", log.commands)
+    check_shape(source, "commands", commands, (command_time.shape[0], 2))
+    check_finite(source, "commands", commands)
+    return dict(command_time=command_time, commands=commands)
+
+
 def validate_log(log: RobotLog, source: str = "<RobotLog>") -> RobotLog:
     """Check ``log`` against ``docs/log_format.md``; return it with canonical dtypes.
 
@@ -257,7 +309,7 @@ def validate_log(log: RobotLog, source: str = "<RobotLog>") -> RobotLog:
       LogFormatError: naming ``source``, the offending array and what is expected.
     """
     for first, second in (("obs_z", "obs_valid"), ("scan_ranges", "scan_angles"),
-                          ("gps_time", "gps_xy")):
+                          ("gps_time", "gps_xy"), ("command_time", "commands")):
         _check_pair(source, log, first, second)
     if log.obs_z is None and log.scan_ranges is None:
         fail(source, "no observations: expected 'obs_z' + 'obs_valid' (range-bearing) or "
@@ -267,6 +319,7 @@ def validate_log(log: RobotLog, source: str = "<RobotLog>") -> RobotLog:
     fields.update(_check_observations(source, log, steps))
     fields.update(_check_scans(source, log, steps))
     fields.update(_check_truth_and_gps(source, log, steps))
+    fields.update(_check_commands(source, log))
     return RobotLog(**fields)
 
 

@@ -52,7 +52,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from jaxslam.datasets.log_format import LogFormatError, RobotLog, validate_log
-from jaxslam.datasets.odometry import integrate_controls, interpolate_poses
+from jaxslam.datasets.odometry import interpolate_poses
 
 if TYPE_CHECKING:  # only for annotations: mrclam imports this module
     from jaxslam.datasets.mrclam import MrclamRun
@@ -213,28 +213,29 @@ def mrclam_steps(run: MrclamRun, max_obs: int = DEFAULT_MAX_OBS, step_dt: float 
 def mrclam_log(run: MrclamRun, steps: MrclamSteps,
                min_translation: float = MRCLAM_MIN_TRANSLATION,
                command_delay: float = 0.0) -> RobotLog:
-    """The validated ``RobotLog`` of ``steps``: odometry moves, Vicon truth, start pose.
+    """The validated ``RobotLog`` of ``steps``: odometry moves, Vicon truth, start pose, and
+    the commanded velocities as its command stream (``command_time``, ``commands``).
 
     ``command_delay`` [s]: each commanded velocity takes effect that much later than its
     time stamp (the robots answer their commands with a lag, which
-    ``command_delay.fit_log_command_delay`` fits from the log). Only the moves change: the
-    steps, the observations, the start time and pose and the truth stay as they are (before
-    its first, delayed, command the robot stands still; a negative delay moves the first
-    commands before the start).
+    ``command_delay.fit_log_command_delay`` fits from the log): the moves of
+    ``RobotLog.at_command_delay``. Only the moves change: the steps, the observations, the
+    start time and pose and the truth stay as they are (before its first, delayed, command
+    the robot stands still; a negative delay moves the first commands before the start).
     """
     if not np.isfinite(command_delay):
         raise ValueError(f"command_delay={command_delay!r}: expected a finite number of "
                          "seconds")
-    controls = integrate_controls(np.asarray(run.odometry_time, np.float64) + command_delay,
-                                  run.odometry, steps.time, "velocity",
-                                  min_translation=min_translation)
     start = run.odometry_time[:1]
-    log = RobotLog(time=steps.time, motion_model="odometry", controls=controls,
+    log = RobotLog(time=steps.time, motion_model="odometry",
+                   controls=np.zeros((steps.time.shape[0], 3)),
                    obs_z=steps.obs_z, obs_valid=steps.obs_valid,
                    truth_pose=interpolate_poses(steps.time, run.truth_time, run.truth_pose),
                    truth_landmarks=run.landmark_xy,
-                   initial_pose=interpolate_poses(start, run.truth_time, run.truth_pose)[0])
-    return validate_log(log, source=f"MRCLAM robot {run.robot}")
+                   initial_pose=interpolate_poses(start, run.truth_time, run.truth_pose)[0],
+                   command_time=run.odometry_time, commands=run.odometry)
+    return validate_log(log.at_command_delay(command_delay, min_translation),
+                        source=f"MRCLAM robot {run.robot}")
 
 
 def landmarks_as_sighted(truth_landmarks):

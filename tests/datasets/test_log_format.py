@@ -27,6 +27,8 @@ def _full_arrays(rng=None) -> dict:
         gps_time=np.linspace(0.0, 1.0, 6),
         gps_xy=rng.normal(size=(6, 2)),
         initial_pose=np.array([1.0, -2.0, 0.3]),
+        command_time=np.linspace(0.0, 1.2, 9),
+        commands=rng.normal(0.0, 0.3, (9, 2)),
     )
 
 
@@ -61,7 +63,7 @@ def test_round_trip_all_fields(tmp_path, compress):
 
 @pytest.mark.parametrize("drop", [
     ("scan_ranges", "scan_angles", "truth_pose", "truth_landmarks", "gps_time", "gps_xy",
-     "initial_pose", "obs_radius"),
+     "initial_pose", "obs_radius", "command_time", "commands"),
     ("obs_z", "obs_valid", "obs_radius"),  # scans only
 ])
 def test_round_trip_minimal(tmp_path, drop):
@@ -242,6 +244,15 @@ INVALID = {
                        r"'gps_xy' has shape \(5, 2\); expected \(6, 2\)"),
     "gps NaN": (_poke("gps_xy", (2, 1), np.nan), r"'gps_xy' contains NaN or inf"),
     "gps_time alone": (_drop("gps_xy"), r"'gps_time' is present but 'gps_xy' is missing"),
+    "commands alone": (_drop("command_time"),
+                       r"'commands' is present but 'command_time' is missing"),
+    "commands unsorted": (_poke("command_time", (3,), 0.0),
+                          r"'command_time' is not strictly increasing"),
+    "commands with dt": (_set("commands", lambda a: np.zeros((9, 3))),
+                         r"'commands' has shape \(9, 3\); expected \(9, 2\)"),
+    "commands NaN": (_poke("commands", (4, 1), np.nan), r"'commands' contains NaN or inf"),
+    "command_time empty": (_set("command_time", lambda a: np.zeros(0)),
+                           r"'command_time' is empty"),
 }
 
 
@@ -271,3 +282,54 @@ def test_not_an_npz(tmp_path):
     path.write_text("time,x,y\n")
     with pytest.raises(lf.LogFormatError, match=r"run.npz: cannot read as a .npz archive"):
         lf.load_log(path)
+
+
+# ------------------------------------------------------------------------------ command stream
+
+
+def _commanded_log(commands, command_time, time) -> lf.RobotLog:
+    steps = len(time)
+    return lf.RobotLog(time=np.asarray(time, float), motion_model="velocity",
+                       controls=np.zeros((steps, 3)), obs_z=np.ones((steps, 1, 2)),
+                       obs_valid=np.ones((steps, 1), bool), truth_pose=np.zeros((steps, 3)),
+                       initial_pose=np.array([1.0, 2.0, 0.5]),
+                       command_time=np.asarray(command_time, float),
+                       commands=np.asarray(commands, float))
+
+
+def test_at_command_delay_against_hand_computed_moves():
+    """1 m/s straight ahead from t = 0, steps at 0.5, 1.0, 1.5 s: 0.25 s late the robot stands
+    still until 0.25 s, so it moves 0.25, 0.5, 0.5 m; 0.75 s late 0, 0.25, 0.5 m (the first
+    step's 0 m is a pure turn of 0 rad, below min_translation)."""
+    log = _commanded_log([[1.0, 0.0]], [0.0], [0.5, 1.0, 1.5])
+    late = log.at_command_delay(0.25)
+    assert late.motion_model == "odometry"
+    np.testing.assert_allclose(late.controls, [[0, 0.25, 0], [0, 0.5, 0], [0, 0.5, 0]],
+                               atol=1e-12)
+    np.testing.assert_allclose(log.at_command_delay(0.75).controls[:, 1], [0.0, 0.25, 0.5],
+                               atol=1e-12)
+    for name in ("time", "obs_z", "obs_valid", "truth_pose", "initial_pose", "command_time",
+                 "commands"):  # only the moves change
+        np.testing.assert_array_equal(getattr(late, name), getattr(log, name), err_msg=name)
+
+
+def test_at_command_delay_is_integrate_controls_of_the_shifted_stream():
+    from jaxslam.datasets.odometry import integrate_controls
+
+    rng = np.random.default_rng(5)
+    command_time = np.arange(0.0, 6.0, 0.02)
+    commands = np.stack([rng.uniform(0.2, 0.6, command_time.size),
+                         rng.uniform(-0.8, 0.8, command_time.size)], -1)
+    log = _commanded_log(commands, command_time, np.arange(0.25, 6.0, 0.25))
+    for delay in (-0.1, 0.0, 0.23):
+        expected = integrate_controls(command_time + delay, commands, log.time, "velocity",
+                                      min_translation=1e-3)
+        np.testing.assert_array_equal(log.at_command_delay(delay, 1e-3).controls, expected)
+
+
+def test_at_command_delay_needs_a_stream_and_a_finite_delay():
+    log = _commanded_log([[1.0, 0.0]], [0.0], [0.5, 1.0])
+    with pytest.raises(lf.LogFormatError, match="no command stream"):
+        log._replace(command_time=None, commands=None).at_command_delay(0.1)
+    with pytest.raises(lf.LogFormatError, match="expected a finite number of seconds"):
+        log.at_command_delay(float("nan"))

@@ -173,6 +173,22 @@ def test_command_delay_moves_only_the_moves(root):
             mm.load_mrclam(root, robot=1, command_delay=bad)
 
 
+def test_the_log_carries_its_commands(root, tmp_path):
+    """The commanded velocities travel in the log (command_time, commands), through a saved
+    .npz too, so ``at_command_delay`` rebuilds what the loader's ``command_delay`` gives."""
+    from jaxslam.datasets.log_format import load_log, save_log
+
+    run = mm.read_mrclam(root, 1)
+    stamped = mm.load_mrclam(root, robot=1, max_obs=2, max_gap=None)
+    np.testing.assert_array_equal(stamped.command_time, run.odometry_time)
+    np.testing.assert_array_equal(stamped.commands, run.odometry)
+    save_log(tmp_path / "robot1.npz", stamped)
+    late = mm.load_mrclam(root, robot=1, max_obs=2, max_gap=None, command_delay=1.0)
+    for log in (stamped, load_log(tmp_path / "robot1.npz")):
+        rebuilt = log.at_command_delay(1.0, mc.MRCLAM_MIN_TRANSLATION)
+        np.testing.assert_array_equal(rebuilt.controls, late.controls)
+
+
 def test_dead_reckoning_from_the_initial_pose(root):
     log = mm.load_mrclam(root, robot=1, max_gap=None)
     path = odometry_path(log.controls, log.initial_pose)
