@@ -197,18 +197,24 @@ def _check_pair(source, log, first, second):
                       "expected both or neither")
 
 
+def _stamps(source, name, value, what: str) -> np.ndarray:
+    """(N,) float64 time stamps [s]: one axis, at least one ``what``, finite, increasing."""
+    stamps = _as_float(source, name, value)
+    check_shape(source, name, stamps, (None,))
+    if stamps.shape[0] < 1:
+        fail(source, f"'{name}' is empty; expected at least one {what}")
+    check_finite(source, name, stamps)
+    check_increasing(source, name, stamps)
+    return stamps
+
+
 def _check_core(source: str, log: RobotLog) -> dict:
     fields = {}
     version = _check_version(source, log.format_version)
     model = str(np.asarray(log.motion_model))
     if model not in MOTION_MODELS:
         fail(source, f"unknown motion_model {model!r}; expected one of {list(MOTION_MODELS)}")
-    time = _as_float(source, "time", log.time)
-    check_shape(source, "time", time, (None,))
-    if time.shape[0] < 1:
-        fail(source, "'time' is empty; expected at least one step")
-    check_finite(source, "time", time)
-    check_increasing(source, "time", time)
+    time = _stamps(source, "time", log.time, "step")
     steps = time.shape[0]
     controls = _as_float(source, "controls", log.controls)
     check_shape(source, "controls", controls, (steps, 3))
@@ -290,12 +296,7 @@ def _check_truth_and_gps(source: str, log: RobotLog, steps: int) -> dict:
 def _check_commands(source: str, log: RobotLog) -> dict:
     if log.command_time is None:
         return {}
-    command_time = _as_float(source, "command_time", log.command_time)
-    check_shape(source, "command_time", command_time, (None,))
-    if command_time.shape[0] < 1:
-        fail(source, "'command_time' is empty; expected at least one command")
-    check_finite(source, "command_time", command_time)
-    check_increasing(source, "command_time", command_time)
+    command_time = _stamps(source, "command_time", log.command_time, "command")
     commands = _as_float(source, "commands", log.commands)
     check_shape(source, "commands", commands, (command_time.shape[0], 2))
     check_finite(source, "commands", commands)
