@@ -49,7 +49,7 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam import metrics, pipeline
-from jaxslam.command_delay import command_delay_choice, fit_log_command_delay
+from jaxslam.command_delay import command_delay_argument, fit_log_command_delay, profile_text
 from jaxslam.datasets.mrclam import read_mrclam
 from jaxslam.datasets.mrclam_convert import DEFAULT_MAX_OBS, mrclam_log, mrclam_steps
 from jaxslam.datasets.odometry import odometry_path
@@ -77,7 +77,7 @@ def main(argv=None):
     parser.add_argument("--barcodes", choices=("none", "calibration", "both"), default="none",
                         help="diagnostic: association known from the barcodes in the "
                              "calibration, or in the calibration and the run")
-    parser.add_argument("--command-delay", default="auto", type=delay_argument,
+    parser.add_argument("--command-delay", default="auto", type=command_delay_argument,
                         help="[s] the commands take effect this much later than stamped; "
                              "'auto' (default) fits it from the log (module docstring), 0 runs "
                              "the log as stamped")
@@ -163,15 +163,6 @@ def main(argv=None):
           f"{np.median(rows[:, 0] / rows[:, 1]):.2f}; landmarks {np.median(rows[:, 3]):.0f}")
 
 
-def delay_argument(text: str):
-    """``--command-delay``'s value: "auto" or a finite number of seconds
-    (``command_delay_choice``)."""
-    try:
-        return command_delay_choice(text)
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(str(error)) from error
-
-
 def fitted_delay(raw, steps, config: FilterConfig, seed: int, params) -> float:
     """The command delay [s] fitted from one robot's log (module docstring), printed with its
     profile: ``fit_log_command_delay`` from the calibration's starting point ``params`` (None:
@@ -180,12 +171,8 @@ def fitted_delay(raw, steps, config: FilterConfig, seed: int, params) -> float:
     tick = time.perf_counter()
     fit = fit_log_command_delay(lambda delay: mrclam_log(raw, steps, command_delay=delay),
                                 config, jax.random.PRNGKey(seed), params)
-    profile = fit.neg2_log_likelihood - fit.neg2_log_likelihood.min()
-    print(f"robot {raw.robot}: command delay fitted from the log {fit.delay:.3f} s"
-          + (" (at the search's bound: give --command-delay)" if fit.at_edge else "")
-          + " | -2 log L above its least at "
-          + ", ".join(f"{d:+.1f} s {v:.0f}" for d, v in zip(fit.delays, profile))
-          + f" | {time.perf_counter() - tick:.1f} s", flush=True)
+    print(f"robot {raw.robot}: command delay fitted from the log {profile_text(fit)} | "
+          f"{time.perf_counter() - tick:.1f} s", flush=True)
     return fit.delay
 
 

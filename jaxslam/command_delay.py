@@ -297,6 +297,27 @@ def fit_log_command_delay(log_at: Callable, config: FilterConfig, key,
                              max_shift, refinements)
 
 
+def profile_text(fit: DelayFit) -> str:
+    """One line: the fitted delay, a flag at the search's bound, and l(d) above its least at
+    each candidate."""
+    profile = fit.neg2_log_likelihood - fit.neg2_log_likelihood.min()
+    return (f"{fit.delay:.3f} s"
+            + (" (at the search's bound: the lag may lie beyond; give it)" if fit.at_edge
+               else "")
+            + " | -2 log L above its least at "
+            + ", ".join(f"{d:+.2f} s {v:.0f}" for d, v in zip(fit.delays, profile)))
+
+
+def command_delay_argument(text: str):
+    """``command_delay_choice`` as an argparse ``type``: ArgumentTypeError for bad text."""
+    import argparse
+
+    try:
+        return command_delay_choice(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from error
+
+
 def command_delay_choice(text: str):
     """A command-line command delay: "auto" (fit it from the log), or a finite number of
     seconds as a float; ValueError naming the expected forms otherwise."""

@@ -642,10 +642,27 @@ def test_run_and_calibrate_with_the_commands_lag(tmp_path, monkeypatch, capsys):
         assert status == 0 and "commands +0.270 s late" in out
         assert "--command-delay 0.270" in out  # how to reuse the file
         assert "run with --command-delay 0.270" in (tmp_path / "params.toml").read_text()
+        # the saved settings reused at the lag they were calibrated at
+        status = cli.main(["run", "--data", str(tmp_path / "log.npz"), "--out",
+                           str(tmp_path / "again"), "--params", str(tmp_path / "params.toml"),
+                           "--command-delay", "0.27", *small])
+        assert status == 0 and "commands +0.270 s late" in capsys.readouterr().out
+        metrics = json.loads((tmp_path / "again" / "metrics.json").read_text())["metrics"]
+        assert metrics["command_delay"] == 0.27
         save_log(tmp_path / "plain.npz", _straight_log())
-        status = cli.main(["run", "--data", str(tmp_path / "plain.npz"), "--command-delay",
-                           "0.2", "--no-calibrate", *small])
+        status = cli.main(["run", "--data", str(tmp_path / "plain.npz"), "--out",
+                           str(tmp_path / "plain"), "--command-delay", "0.2", "--no-calibrate",
+                           *small])
         assert status == 2 and "has no command stream" in capsys.readouterr().err
+        # a bad calibration option is refused before the lag is fitted
+        status = cli.main(["run", "--data", str(tmp_path / "log.npz"), "--out",
+                           str(tmp_path / "bad"), "--command-delay", "auto", "--em-patience",
+                           "-1", *small])
+        captured = capsys.readouterr()
+        assert status == 2 and "--em-patience" in captured.err
+        assert "fitting the commands' lag" not in captured.out
+        assert cli.main(["run", "--command-delay", "0.2"]) == 2  # no --data
+        assert "apply to a robot log" in capsys.readouterr().err
         with pytest.raises(SystemExit):
             cli.main(["run", "--data", str(tmp_path / "log.npz"), "--command-delay", "soon"])
         assert "expected 'auto' or a finite number of seconds" in capsys.readouterr().err

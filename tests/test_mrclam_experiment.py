@@ -57,12 +57,15 @@ def test_barcodes_refuse_the_options_they_do_not_run(capsys):
 def test_command_delay_argument(capsys):
     """``--command-delay``: "auto" or a finite number of seconds; auto needs the blind
     calibration, so --no-calibrate and --barcodes ask for a number."""
-    assert experiment.delay_argument("auto") == "auto"
-    assert experiment.delay_argument("0.25") == 0.25
-    assert experiment.delay_argument("-0.1") == -0.1
+    assert experiment.command_delay_argument("auto") == "auto"
+    assert experiment.command_delay_argument("0.25") == 0.25
+    assert experiment.command_delay_argument("-0.1") == -0.1
     for text in ("nan", "inf", "soon"):
         with pytest.raises(argparse.ArgumentTypeError, match="'auto' or a finite number"):
-            experiment.delay_argument(text)
+            experiment.command_delay_argument(text)
+    with pytest.raises(SystemExit):
+        experiment.main(["--robots", "1", "--command-delay", "soon"])
+    assert "'auto' or a finite number of seconds" in capsys.readouterr().err
     for extra in (["--no-calibrate"], ["--barcodes", "both"]):
         with pytest.raises(SystemExit):
             experiment.main(["--robots", "1", *extra])

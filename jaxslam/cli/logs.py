@@ -253,7 +253,8 @@ def _apply_command_delay(args, log):
     when the option was not given."""
     import jax
 
-    from jaxslam.command_delay import log_at_command_delay
+    from jaxslam.command_delay import log_at_command_delay, profile_text
+    from jaxslam.self_calibration import starting_params
 
     choice = getattr(args, "command_delay", None)
     if choice is None:
@@ -261,8 +262,11 @@ def _apply_command_delay(args, log):
     if log.command_time is None:
         raise UsageError(f"--command-delay {choice}: {args.data} has no command stream "
                          "('command_time' and 'commands', the commanded velocities its "
-                         "controls were integrated from; docs/log_format.md)")
-    _, filter_config, params, _ = _log_settings(args, log)
+                         "controls were integrated from; docs/log_format.md; a ROS bag's "
+                         "conversion keeps none)")
+    study, filter_config, params, _ = _log_settings(args, log)
+    if getattr(args, "params", None) is None:  # the calibration's start, also --no-calibrate
+        params = starting_params(filter_config, **dict(study.params))
     if choice == "auto":
         print("fitting the commands' lag from the log (a filter run and a few smoothings) ...")
     delayed, fit = log_at_command_delay(log, filter_config, jax.random.PRNGKey(args.seed),
@@ -270,11 +274,7 @@ def _apply_command_delay(args, log):
     if fit is None:
         print(f"commands {choice:+.3f} s late: moves rebuilt from the command stream")
         return delayed, float(choice)
-    profile = fit.neg2_log_likelihood - fit.neg2_log_likelihood.min()
-    print(f"command delay fitted from the log: {fit.delay:.3f} s"
-          + (" (at the search's bound: give --command-delay S)" if fit.at_edge else "")
-          + " | -2 log L above its least at "
-          + ", ".join(f"{d:+.2f} s {v:.0f}" for d, v in zip(fit.delays, profile)))
+    print(f"command delay fitted from the log: {profile_text(fit)}")
     return delayed, fit.delay
 
 
@@ -304,13 +304,14 @@ def _filter_log(args, log):
     if close and visit_gap is not None:
         raise UsageError("--close-loops and --visit-gap: choose one (visits are the "
                          "smoother's own soft loop closures)")
+    options = _calibration_options(args)  # checked before the lag's fit
     log, delay = _apply_command_delay(args, log)
     study, filter_config, params, calibrate = _log_settings(args, log)
     run = pipeline.filter_log(log, filter_config, params, jax.random.PRNGKey(args.seed),
                               calibrate=calibrate, smooth=smooth, visit_gap=visit_gap,
                               close_loops=close,
                               map_match_threshold=study.map_match_threshold, progress=print,
-                              calibration_options=_calibration_options(args))
+                              calibration_options=options)
     est = run.estimate
     truth = np.zeros((0, 3)) if log.truth_pose is None else np.asarray(log.truth_pose)
     trees = np.zeros((0, 2)) if log.truth_landmarks is None else np.asarray(log.truth_landmarks)
@@ -359,6 +360,7 @@ def cmd_calibrate(args) -> int:
     if args.bootstrap and args.bootstrap < 2:
         raise UsageError(f"--bootstrap needs B >= 2 replicates (about 20); got "
                          f"{args.bootstrap}")
+    options = _calibration_options(args)  # checked before the lag's fit
     log, delay = _apply_command_delay(args, log)
     if args.bootstrap and log.motion_model != "odometry":
         raise UsageError(f"--bootstrap draws odometry moves (rot1, trans, rot2); this log's "
@@ -367,7 +369,7 @@ def cmd_calibrate(args) -> int:
     params, info = calibrate_params(
         filter_config, jax.random.PRNGKey(args.seed), log.controls.astype("float32"),
         log.observations(), log.initial_pose, start_params, progress=print,
-        **_calibration_options(args))
+        **options)
     _print_calibration(info)
     _print_warnings(info.warnings)
     saved = pipeline.save_params(args.out, params, comment=f"calibrated from {args.data} by "
@@ -380,6 +382,28 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
+def _mrclam_robot(args):
+    """``convert``'s MRCLAM branch: the ``RobotLog`` of robot ``--robot`` when ``args.bag``
+    is an MRCLAM folder (it holds ``Barcodes.dat``), else None (``--robot`` is then refused)."""
+    from jaxslam.datasets.log_format import LogFormatError
+    from jaxslam.datasets.mrclam import BARCODES_NAME, NUM_ROBOTS, load_mrclam
+
+    robot = getattr(args, "robot", None)
+    if not (pathlib.Path(args.bag) / BARCODES_NAME).is_file():
+        if robot is not None:
+            raise UsageError(f"--robot {robot} applies to a UTIAS MRCLAM folder (one holding "
+                             f"{BARCODES_NAME}); {args.bag} is not one")
+        return None
+    if robot is None or not 1 <= robot <= NUM_ROBOTS:
+        raise UsageError(f"{args.bag} is a UTIAS MRCLAM folder of {NUM_ROBOTS} robots: give "
+                         f"--robot 1..{NUM_ROBOTS}" + ("" if robot is None else
+                                                        f" (got {robot})"))
+    try:
+        return load_mrclam(args.bag, robot)
+    except LogFormatError as error:
+        raise UsageError(str(error)) from error
+
+
 def cmd_convert(args) -> int:
     """Convert a ROS bag into a jaxslam .npz log (trunks detected per scan), check that the
     written file loads back, and print what it holds."""
@@ -388,11 +412,13 @@ def cmd_convert(args) -> int:
     from jaxslam.datasets.log_format import LogFormatError, load_log, save_log
     from jaxslam.datasets.rosbag_reader import resolve_bag_path
 
-    try:
-        resolve_bag_path(args.bag)
-    except LogFormatError as error:
-        raise UsageError(str(error)) from error
-    log = _load_robot_log(args.bag, args)
+    log = _mrclam_robot(args)
+    if log is None:
+        try:
+            resolve_bag_path(args.bag)
+        except LogFormatError as error:
+            raise UsageError(str(error)) from error
+        log = _load_robot_log(args.bag, args)
     out = pathlib.Path(args.out)
     if out.suffix != ".npz":  # numpy.savez would add it anyway; say the real name
         out = out.with_name(out.name + ".npz")
@@ -407,9 +433,14 @@ def cmd_convert(args) -> int:
                          f"steps, expected {log.num_steps}); check the disk and rerun")
     valid = int(back.obs_valid.sum())
     span = float(back.time[-1] - back.time[0])
+    commands = ("" if back.command_time is None else
+                f", {back.command_time.shape[0]} commanded velocities")
     path_length = float(np.sum(back.controls[:, 1]))
-    print(f"wrote {out}: {back.num_steps} steps over {span:.1f} s, {valid} trunk detections "
-          f"({valid / back.num_steps:.1f} per scan), odometry path {path_length:.1f} m, "
+    print(f"wrote {out}: {back.num_steps} steps over {span:.1f} s, {valid} landmark "
+          f"detections ({valid / back.num_steps:.1f} per step), odometry path "
+          f"{path_length:.1f} m{commands}, "
           + ("with" if back.truth_pose is not None else "without") + " truth_pose")
-    print(f"run it with: jaxslam run --data {out}")
+    print(f"run it with: jaxslam run --data {out}"
+          + ("" if back.command_time is None else " (--command-delay auto: fit the "
+             "commands' lag first)"))
     return 0

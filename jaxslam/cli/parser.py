@@ -98,9 +98,16 @@ def _add_run(sub) -> None:
 
 def _add_convert(sub) -> None:
     convert = _subparser(sub, "convert", help="convert a ROS bag (LaserScan or PointCloud2 + "
-                                              "odometry) into a jaxslam .npz log")
-    convert.add_argument("bag", help="a ROS 1 .bag file or a ROS 2 bag folder (metadata.yaml "
-                                     "with .db3 or .mcap files)")
+                                              "odometry) or one robot of a UTIAS MRCLAM "
+                                              "folder into a jaxslam .npz log")
+    convert.add_argument("bag", metavar="source",
+                         help="a ROS 1 .bag file, a ROS 2 bag folder (metadata.yaml with .db3 "
+                              "or .mcap files) or a UTIAS MRCLAM dataset folder (Barcodes.dat, "
+                              "RobotN_*.dat; give --robot)")
+    convert.add_argument("--robot", type=int, default=None, metavar="N",
+                         help="with an MRCLAM folder: the robot, 1-5 (the log keeps its "
+                              "commanded velocities for --command-delay, and its Vicon path as "
+                              "truth_pose)")
     convert.add_argument("--out", required=True, help="the .npz log to write; .npz is added "
                                                       "when missing (required)")
     convert.add_argument("--compress", action="store_true",
@@ -110,13 +117,11 @@ def _add_convert(sub) -> None:
 
 
 def _command_delay(text: str):
-    """``--command-delay``'s value (``command_delay.command_delay_choice``)."""
-    from jaxslam.command_delay import command_delay_choice
+    """``--command-delay``'s value (``command_delay.command_delay_argument``; imported when
+    the option is given: it loads jax)."""
+    from jaxslam.command_delay import command_delay_argument
 
-    try:
-        return command_delay_choice(text)
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(str(error)) from error
+    return command_delay_argument(text)
 
 
 def _add_command_delay(parser, prefix: str = "") -> None:

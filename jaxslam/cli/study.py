@@ -75,9 +75,10 @@ def cmd_run(args) -> int:
     if given:
         raise UsageError(f"{given[0]} applies to a ROS bag: pass --data BAG too")
     if (args.smooth or args.visit_gap is not None or args.close_loops or args.no_calibrate
-            or args.params):
-        raise UsageError("--smooth, --visit-gap, --close-loops, --no-calibrate and --params "
-                         "apply to a robot log: pass --data FILE.npz too")
+            or args.params or args.command_delay is not None or args.no_scale_search):
+        raise UsageError("--smooth, --visit-gap, --close-loops, --no-calibrate, --params, "
+                         "--command-delay and --no-scale-search apply to a robot log: pass "
+                         "--data FILE.npz too")
     one_run = ["name=\"run\"", "num_runs=1", "chunk_size=1"]
     config = _load_config(args.config, list(args.set or ()) + one_run)
     from jaxslam import plots, studies

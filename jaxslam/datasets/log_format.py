@@ -2,7 +2,7 @@
 
 The layout is specified in ``docs/log_format.md``. Shapes (glossary in ``jaxslam.types``):
 T steps (one per observation time), K padded observations per step, B beams per raw scan,
-N landmarks, G GPS fixes, C control components.
+N landmarks, G GPS fixes, C control components, U command samples.
 
 Everything here is host-side NumPy float64: logs are read once, then handed to the filter.
 Controls recorded faster than the observations are turned into one move per step by
@@ -23,6 +23,9 @@ OPTIONAL_KEYS = ("obs_z", "obs_valid", "obs_radius", "scan_ranges", "scan_angles
                  "truth_pose", "truth_landmarks", "gps_time", "gps_xy", "initial_pose",
                  "command_time", "commands")
 EXTRA_PREFIX = "meta_"  # keys with this prefix are user metadata: kept out of RobotLog, ignored
+# Pure-turn threshold [m] of moves rebuilt from a command stream: 1 mm, as the MRCLAM and
+# Victoria Park loaders integrate theirs (a short commanded move still has a direction).
+COMMAND_MIN_TRANSLATION = 1e-3
 
 
 class LogFormatError(ValueError):
@@ -50,9 +53,9 @@ class RobotLog(NamedTuple):
       initial_pose: (3,) pose before row 0's move (so the pose at time[0] is
         ``initial_pose (+) controls[0]``), or None for zeros.
       format_version: int, ``FORMAT_VERSION`` when written by this library.
-      command_time: (N,) seconds on the same clock as ``time``, strictly increasing: the
+      command_time: (U,) seconds on the same clock as ``time``, strictly increasing: the
         stamps of the commanded velocities the controls were integrated from, or None.
-      commands: (N, 2) commanded (v [m/s], omega [rad/s]), sample i held from
+      commands: (U, 2) commanded (v [m/s], omega [rad/s]), sample i held from
         command_time[i] to command_time[i + 1], or None. With them the log can be rebuilt
         with the commands acting later than stamped (``at_command_delay``), and the lag
         fitted (``jaxslam.fit_log_command_delay``).
@@ -80,15 +83,18 @@ class RobotLog(NamedTuple):
         """T, the number of filter steps."""
         return int(self.time.shape[0])
 
-    def at_command_delay(self, delay: float, min_translation: float = 0.01) -> "RobotLog":
+    def at_command_delay(self, delay: float,
+                         min_translation: float = COMMAND_MIN_TRANSLATION) -> "RobotLog":
         """This log with the commands acting ``delay`` seconds later than stamped.
 
         controls become the odometry moves (motion_model "odometry") that
-        ``datasets.integrate_controls`` integrates from ``commands`` held from
-        ``command_time + delay`` over this log's steps (moves shorter than
-        ``min_translation`` [m] written as pure turns; the default is ``Params``'); the steps,
-        observations, start and truth stay. At delay 0 that is the command stream integrated as stamped, which may
-        differ from the stored controls if they were made another way.
+        ``datasets.integrate_controls`` integrates from ``commands``, sample i held from
+        command_time[i] + delay to the next (the last one for ever; before the first the
+        robot stands still), over this log's steps; moves shorter than ``min_translation``
+        [m] are written as pure turns. The stored controls are replaced; the steps,
+        observations, start and truth stay. At delay 0 that is the command stream
+        integrated as stamped, which may differ from the stored controls if they were made
+        another way (the MRCLAM loader's are made this way: they agree to the bit).
 
         Raises ``LogFormatError`` when the log has no command stream or ``delay`` is not a
         finite number of seconds.

@@ -51,7 +51,8 @@ from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from jaxslam.datasets.log_format import LogFormatError, RobotLog, validate_log
+from jaxslam.datasets.log_format import (COMMAND_MIN_TRANSLATION, LogFormatError, RobotLog,
+                                         validate_log)
 from jaxslam.datasets.odometry import interpolate_poses
 
 if TYPE_CHECKING:  # only for annotations: mrclam imports this module
@@ -65,7 +66,7 @@ TIME_SLACK = 1e-9  # [s], float rounding allowance when comparing times
 # integrated commanded velocities, so even short ones have a meaningful direction (a median
 # step is 0.24 s, 2 cm). Measured: dead-reckoning ATE of every robot changes by < 1 mm
 # between 0, 1 mm and 1 cm.
-MRCLAM_MIN_TRANSLATION = 1e-3
+MRCLAM_MIN_TRANSLATION = COMMAND_MIN_TRANSLATION
 # obs_landmark indices whose readings lie at each other's listed position (module docstring)
 SWAPPED_LANDMARK_ROWS = (5, 11)
 

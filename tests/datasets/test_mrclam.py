@@ -185,8 +185,9 @@ def test_the_log_carries_its_commands(root, tmp_path):
     save_log(tmp_path / "robot1.npz", stamped)
     late = mm.load_mrclam(root, robot=1, max_obs=2, max_gap=None, command_delay=1.0)
     for log in (stamped, load_log(tmp_path / "robot1.npz")):
-        rebuilt = log.at_command_delay(1.0, mc.MRCLAM_MIN_TRANSLATION)
-        np.testing.assert_array_equal(rebuilt.controls, late.controls)
+        # the default pure-turn threshold is the loader's: at 0 s the stored moves come back
+        np.testing.assert_array_equal(log.at_command_delay(0.0).controls, stamped.controls)
+        np.testing.assert_array_equal(log.at_command_delay(1.0).controls, late.controls)
 
 
 def test_dead_reckoning_from_the_initial_pose(root):
@@ -378,3 +379,27 @@ def _median_range_error(pose, measured, landmark):
     """Median |measured range - range from the true pose (n, 2) to ``landmark`` (2,)|."""
     delta = landmark - pose
     return np.median(np.abs(measured - np.hypot(delta[:, 0], delta[:, 1])))
+
+
+def test_cli_converts_one_robot(root, tmp_path, capsys):
+    """``jaxslam convert FOLDER --robot N``: the loader's log, command stream included, in a
+    .npz that loads back; without --robot, with a robot outside 1-5, or with --robot on a
+    path that is no MRCLAM folder, a one-line usage error."""
+    from jaxslam import cli
+
+    out = tmp_path / "robot1"
+    assert cli.main(["convert", str(root), "--robot", "1", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert f"wrote {out}.npz" in printed and "commanded velocities" in printed
+    assert "--command-delay auto" in printed
+    loaded, direct = load_log(f"{out}.npz"), mm.load_mrclam(root, robot=1)
+    for name in ("time", "controls", "obs_z", "obs_valid", "truth_pose", "initial_pose",
+                 "command_time", "commands"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(direct, name),
+                                      err_msg=name)
+    assert cli.main(["convert", str(root), "--out", str(out)]) == 2
+    assert "give --robot 1..5" in capsys.readouterr().err
+    assert cli.main(["convert", str(root), "--robot", "6", "--out", str(out)]) == 2
+    assert "(got 6)" in capsys.readouterr().err
+    assert cli.main(["convert", f"{out}.npz", "--robot", "1", "--out", str(out)]) == 2
+    assert "applies to a UTIAS MRCLAM folder" in capsys.readouterr().err
