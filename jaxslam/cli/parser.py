@@ -107,7 +107,7 @@ def _add_convert(sub) -> None:
     convert.add_argument("--robot", type=int, default=None, metavar="N",
                          help="with an MRCLAM folder: the robot, 1-5 (the log keeps its "
                               "commanded velocities for --command-delay, and its Vicon path as "
-                              "truth_pose)")
+                              "truth_pose) (default: none; required for an MRCLAM folder)")
     convert.add_argument("--out", required=True, help="the .npz log to write; .npz is added "
                                                       "when missing (required)")
     convert.add_argument("--compress", action="store_true",
