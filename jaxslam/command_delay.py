@@ -214,6 +214,7 @@ def fit_command_delay(moves_at: Callable[[float], np.ndarray], start, path, z, l
         spacing is halved (>= 0).
     """
     max_steps = search_steps(start_delay, step, max_shift, refinements)
+    _check_revisits(landmark_of_obs)
     spacing = step / 2 ** refinements  # [s] between the finest candidates
     scales = {}  # offset -> (4,) the smoother's scales there, filled by ``criterion``
 
@@ -231,6 +232,22 @@ def fit_command_delay(moves_at: Callable[[float], np.ndarray], start, path, z, l
     delay = (float(delays[best]) if at_edge else
              parabola_vertex(delays[best - 1:best + 2], values[best - 1:best + 2]))
     return DelayFit(delay, delays, values, np.stack([scales[i] for i in offsets]), at_edge)
+
+
+def _check_revisits(landmark_of_obs) -> None:
+    """ValueError unless at least ``MIN_OBSERVATIONS`` observations belong to landmarks seen
+    twice or more: without landmarks seen again nothing ties the path to the observations,
+    and l(d) would compare the moves' covariances alone."""
+    from jaxslam.noise_fit import MIN_OBSERVATIONS
+
+    ids = np.asarray(landmark_of_obs)
+    counts = np.bincount(ids[ids >= 0], minlength=1)
+    revisits = int(counts[counts >= 2].sum())
+    if revisits < MIN_OBSERVATIONS:
+        raise ValueError(f"only {revisits} observations belong to landmarks seen twice or more "
+                         f"(the fit needs at least {MIN_OBSERVATIONS}): the log's observations "
+                         "do not tie its path down, so its commands' lag cannot be fitted "
+                         "from it; give the lag (a number of seconds) or a longer log")
 
 
 def _check_odometry(log, delay) -> None:

@@ -663,6 +663,12 @@ def test_run_and_calibrate_with_the_commands_lag(tmp_path, monkeypatch, capsys):
         assert "fitting the commands' lag" not in captured.out
         assert cli.main(["run", "--command-delay", "0.2"]) == 2  # no --data
         assert "apply to a robot log" in capsys.readouterr().err
+        # one second of log (3 steps, at most 12 sightings): too few to fit a lag from
+        save_log(tmp_path / "short.npz", DelayedWorld(seconds=1.0).stamped_log())
+        status = cli.main(["run", "--data", str(tmp_path / "short.npz"), "--out",
+                           str(tmp_path / "short"), "--command-delay", "auto", *small])
+        assert status == 2
+        assert "lag cannot be fitted from it; give the lag" in capsys.readouterr().err
         with pytest.raises(SystemExit):
             cli.main(["run", "--data", str(tmp_path / "log.npz"), "--command-delay", "soon"])
         assert "expected 'auto' or a finite number of seconds" in capsys.readouterr().err

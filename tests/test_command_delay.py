@@ -371,3 +371,16 @@ def test_log_at_command_delay(world):
     # this world is about 0.1 m, so the moves are the same)
     assert abs(fit.delay - TRUE_DELAY) < 0.03, fit
     np.testing.assert_array_equal(fitted.controls, log.at_command_delay(fit.delay).controls)
+
+
+def test_a_log_without_revisits_is_refused(world):
+    """Landmarks never seen twice leave the path free: no lag can be read off the profile."""
+    path = numpy_odometry_path(world.moves_at(0.0), world.start)
+    once = np.full(world.ids.shape, -1)
+    rows, cols = np.nonzero(world.ids >= 0)
+    once[rows[:30], cols[:30]] = np.arange(30)  # 30 observations, each its own landmark
+    with pytest.raises(ValueError, match="only 0 observations belong to landmarks seen twice"):
+        cd.fit_command_delay(world.moves_at, world.start, path, world.z, once, world.params)
+    once[rows[30:49], cols[30:49]] = 0  # 20 observations of landmark 0: enough
+    fit = cd.fit_command_delay(world.moves_at, world.start, path, world.z, once, world.params)
+    assert np.isfinite(fit.delay)

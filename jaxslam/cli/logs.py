@@ -269,8 +269,11 @@ def _apply_command_delay(args, log):
         params = starting_params(filter_config, **dict(study.params))
     if choice == "auto":
         print("fitting the commands' lag from the log (a filter run and a few smoothings) ...")
-    delayed, fit = log_at_command_delay(log, filter_config, jax.random.PRNGKey(args.seed),
-                                        choice, params)
+    try:
+        delayed, fit = log_at_command_delay(log, filter_config, jax.random.PRNGKey(args.seed),
+                                            choice, params)
+    except ValueError as error:  # a log that cannot give the lag: say why, in one line
+        raise UsageError(f"--command-delay {choice}: {error}") from error
     if fit is None:
         print(f"commands {choice:+.3f} s late: moves rebuilt from the command stream")
         return delayed, float(choice)
