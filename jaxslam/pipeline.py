@@ -3,6 +3,9 @@
 ``filter_log(log, config, params, key)`` is what ``jaxslam run --data`` and
 ``jaxslam calibrate`` call, and what a user importing jaxslam as a backend calls:
 
+    0. optionally the controls rebuilt from the log's command stream with the commands late
+       by a given lag or by the lag fitted from the log (``command_delay``:
+       ``command_delay.log_at_command_delay``);
     1. observations and controls from the ``RobotLog`` (detected trunks: ``obs_z``);
     2. ``calibrate_params`` from the log alone, unless ``calibrate=False``;
     3. ``run_filter`` with the lineage recorded, so the best particle's data association is
@@ -51,6 +54,7 @@ class LogRun(NamedTuple):
       smoothed_pose: (T, 3) the smoothed path, or None.
       metrics: dict of floats (truth-based ones only when the log has truth).
       warnings: tuple of plain-word warnings (``run_warnings``).
+      delay_fit: the ``command_delay.DelayFit`` of ``command_delay="auto"``, else None.
     """
 
     params: Params
@@ -61,6 +65,7 @@ class LogRun(NamedTuple):
     smoothed_pose: np.ndarray | None
     metrics: dict
     warnings: tuple
+    delay_fit: object = None
 
 
 def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int,
@@ -203,6 +208,7 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
                close_loops: bool = False, smooth_rounds: int | None = None,
                map_match_threshold: float = 1.0,
                calibration_options: dict | None = None,
+               command_delay: float | str | None = None,
                progress: Callable[[str], None] | None = None) -> LogRun:
     """Calibrate (by default), filter and evaluate one ``RobotLog`` (module docstring).
 
@@ -223,10 +229,22 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
         smooths with the Params' noise as it is).
       map_match_threshold: [m] landmark-to-tree distance of a match in the map metrics.
       calibration_options: keyword arguments for ``calibrate_params``.
+      command_delay: None (default): the log's controls as they are. A number [s] or "auto":
+        the moves rebuilt from the log's command stream (``RobotLog.at_command_delay``) with
+        the commands that much late, or at the lag ``fit_log_command_delay`` fits from the
+        log (key ``key``, from ``params`` when given, else the calibration's start);
+        ``LogRun.delay_fit`` holds that fit and the metrics gain ``command_delay`` [s].
       progress: optional callable(str) told of each stage.
     """
     check_offline_options(smooth, visit_gap, close_loops, smooth_rounds)
     key = jax.random.PRNGKey(0) if key is None else key
+    delay_fit = None
+    if command_delay is not None:
+        from jaxslam.command_delay import log_at_command_delay, profile_text
+
+        log, delay_fit = log_at_command_delay(log, config, key, command_delay, params)
+        if progress is not None and delay_fit is not None:
+            progress(f"command delay fitted from the log: {profile_text(delay_fit)}")
     config, controls, obs, start = log_inputs(log, config)
     from jaxslam.validation import observation_units_warnings  # units guard (issue 18)
     units = observation_units_warnings(np.asarray(obs.z), np.asarray(obs.valid), max_range=(
@@ -264,7 +282,11 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
     if calibration is not None:
         warnings = list(calibration.warnings) + warnings
     warnings = units + list(warnings)
-    return LogRun(params, calibration, est, trace, mean_pose, smoothed, values, tuple(warnings))
+    if command_delay is not None:
+        values["command_delay"] = (delay_fit.delay if delay_fit is not None
+                                   else float(command_delay))
+    return LogRun(params, calibration, est, trace, mean_pose, smoothed, values, tuple(warnings),
+                  delay_fit)
 
 
 def check_offline_options(smooth: bool, visit_gap: int | None, close_loops: bool,
