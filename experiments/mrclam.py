@@ -12,7 +12,8 @@ The odometry is the commanded velocities, which the robots follow with a lag. By
 (``--command-delay auto``) the lag is fitted from the log too: one filter run of the log as
 stamped with the calibration's first settings gives the associations, the smoother's profile
 likelihood over the delay is read with them (``jaxslam.command_delay.fit_log_command_delay``),
-and the log rebuilt at the fitted delay is calibrated and filtered; that run is the result.
+and the log rebuilt at the fitted delay is calibrated and filtered; that run is the result
+(``pipeline.filter_log(..., command_delay="auto")`` does all of it).
 ``--command-delay 0`` runs the log as stamped, ``--command-delay S`` at S seconds. Dead
 reckoning is always the log as stamped (a delay shifts its path in time by S and changes
 its ATE by under 1 mm on these robots). The seconds printed for a robot include the fit.
@@ -49,7 +50,7 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam import metrics, pipeline
-from jaxslam.command_delay import command_delay_argument, fit_log_command_delay, profile_text
+from jaxslam.command_delay import command_delay_argument, profile_text
 from jaxslam.datasets.mrclam import read_mrclam
 from jaxslam.datasets.mrclam_convert import DEFAULT_MAX_OBS, mrclam_log, mrclam_steps
 from jaxslam.datasets.odometry import odometry_path
@@ -106,10 +107,8 @@ def main(argv=None):
         dr_ate = float(metrics.ate_rmse(dr, truth))
         start = time.perf_counter()
         delay = args.command_delay
-        if delay == "auto":
-            delay = fitted_delay(raw, steps, config, args.seed,
-                                 start_params(config, args.existence_max))
-        log = mrclam_log(raw, steps, command_delay=delay)
+        if delay != "auto":  # else the pipeline fits it from the log as stamped
+            log = mrclam_log(raw, steps, command_delay=delay)
         if args.barcodes != "none":
             ate, landmarks, info = with_barcodes(log, steps.obs_landmark, config,
                                                  args.barcodes, args.seed, args.existence_max)
@@ -127,8 +126,14 @@ def main(argv=None):
                                                             not args.no_calibrate),
                                   jax.random.PRNGKey(args.seed),
                                   calibrate=not args.no_calibrate, smooth=True,
-                                  close_loops=args.close_loops)
+                                  close_loops=args.close_loops,
+                                  command_delay="auto" if delay == "auto" else None)
         seconds = time.perf_counter() - start
+        if run.delay_fit is not None:
+            delay = run.delay_fit.delay
+            print(f"robot {robot}: command delay fitted from the log "
+                  f"{profile_text(run.delay_fit)}", flush=True)
+            log = log.at_command_delay(delay)  # what the pipeline filtered (for the keys)
         m = run.metrics
         rows.append((dr_ate, m["ate_rmse"], m["smoothed_ate_rmse"], m["num_landmarks"],
                      m["num_trees_mapped"]))
@@ -161,19 +166,6 @@ def main(argv=None):
     print(f"median: dead reckoning {np.median(rows[:, 0]):.3f} m, filter "
           f"{np.median(rows[:, 1]):.3f} m{smoothed}; ratio dead reckoning / filter "
           f"{np.median(rows[:, 0] / rows[:, 1]):.2f}; landmarks {np.median(rows[:, 3]):.0f}")
-
-
-def fitted_delay(raw, steps, config: FilterConfig, seed: int, params) -> float:
-    """The command delay [s] fitted from one robot's log (module docstring), printed with its
-    profile: ``fit_log_command_delay`` from the calibration's starting point ``params`` (None:
-    the library's) with key ``seed`` on the logs ``mrclam_log`` rebuilds at each candidate
-    delay, the associations from the log as stamped."""
-    tick = time.perf_counter()
-    fit = fit_log_command_delay(lambda delay: mrclam_log(raw, steps, command_delay=delay),
-                                config, jax.random.PRNGKey(seed), params)
-    print(f"robot {raw.robot}: command delay fitted from the log {profile_text(fit)} | "
-          f"{time.perf_counter() - tick:.1f} s", flush=True)
-    return fit.delay
 
 
 def start_params(config: FilterConfig, existence_max: float | None, calibrate: bool = True):
