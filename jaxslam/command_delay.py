@@ -68,6 +68,10 @@ DEFAULT_MAX_SHIFT = 1.0
 # (tests/test_command_delay.py's world, seeds 0-3: the profile is not a parabola over
 # 0.4 s); 0.1 s apart, within 0.01 s.
 DEFAULT_REFINEMENTS = 1
+# The fewest observations of landmarks seen twice or more the fit accepts (``_check_revisits``):
+# the count the calibration asks of its observation fits (``noise_fit.MIN_OBSERVATIONS``),
+# here of landmarks seen twice, the least that ties the path to them.
+MIN_REVISITS = 20
 
 # The smoother's settings at each candidate: the calibration's M-step's (``calibrate_params``'
 # ``smoother_iterations`` default and its tolerance). On MRCLAM robot 2 (as stamped, at 0,
@@ -234,20 +238,27 @@ def fit_command_delay(moves_at: Callable[[float], np.ndarray], start, path, z, l
     return DelayFit(delay, delays, values, np.stack([scales[i] for i in offsets]), at_edge)
 
 
-def _check_revisits(landmark_of_obs) -> None:
-    """ValueError unless at least ``MIN_OBSERVATIONS`` observations belong to landmarks seen
-    twice or more: without landmarks seen again nothing ties the path to the observations,
-    and l(d) would compare the moves' covariances alone."""
-    from jaxslam.noise_fit import MIN_OBSERVATIONS
+class DelayFitError(ValueError):
+    """A log that cannot give its commands' lag (too few landmarks seen again)."""
 
+
+def _refuse(count: int, what: str = "observations belong to landmarks seen twice or more"):
+    """Raise the ``DelayFitError`` of a log with only ``count`` ``what``."""
+    raise DelayFitError(f"only {count} {what} (the fit needs at least {MIN_REVISITS} "
+                        "observations of landmarks seen twice or more): the log's observations do "
+                        "not tie its path down, so its commands' lag cannot be fitted from "
+                        "it; give the lag (a number of seconds) or a longer log")
+
+
+def _check_revisits(landmark_of_obs) -> None:
+    """``DelayFitError`` unless at least ``MIN_REVISITS`` observations belong to landmarks
+    seen twice or more: without landmarks seen again nothing ties the path to the
+    observations, and l(d) would compare the moves' covariances alone."""
     ids = np.asarray(landmark_of_obs)
     counts = np.bincount(ids[ids >= 0], minlength=1)
     revisits = int(counts[counts >= 2].sum())
-    if revisits < MIN_OBSERVATIONS:
-        raise ValueError(f"only {revisits} observations belong to landmarks seen twice or more "
-                         f"(the fit needs at least {MIN_OBSERVATIONS}): the log's observations "
-                         "do not tie its path down, so its commands' lag cannot be fitted "
-                         "from it; give the lag (a number of seconds) or a longer log")
+    if revisits < MIN_REVISITS:
+        _refuse(revisits)
 
 
 def _check_odometry(log, delay) -> None:
@@ -291,6 +302,8 @@ def fit_log_command_delay(log_at: Callable, config: FilterConfig, key,
     _check_odometry(first, start_delay)
     config, controls, observations, start = pipeline.log_inputs(first, config)
     valid = np.asarray(observations.valid)
+    if valid.sum() < MIN_REVISITS:  # refused before the filter run
+        _refuse(int(valid.sum()), "valid observations in the log")
     params = with_typical_heading_std(starting_params(config) if params is None else params,
                                       np.asarray(controls, np.float64),
                                       np.asarray(observations.z)[valid][:, 0])

@@ -232,7 +232,8 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
       command_delay: None (default): the log's controls as they are. A number [s] or "auto":
         the moves rebuilt from the log's command stream (``RobotLog.at_command_delay``) with
         the commands that much late, or at the lag ``fit_log_command_delay`` fits from the
-        log (key ``key``, from ``params`` when given, else the calibration's start);
+        log (key ``key``, from ``params`` when given, else the calibration's start, also
+        with ``calibrate=False``, where the run itself then uses ``default_params``);
         ``LogRun.delay_fit`` holds that fit and the metrics gain ``command_delay`` [s].
       progress: optional callable(str) told of each stage.
     """
@@ -242,6 +243,9 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
     if command_delay is not None:
         from jaxslam.command_delay import log_at_command_delay, profile_text
 
+        if progress is not None and command_delay == "auto":
+            progress("fitting the commands' lag from the log (a filter run and a few "
+                     "smoothings) ...")
         log, delay_fit = log_at_command_delay(log, config, key, command_delay, params)
         if progress is not None and delay_fit is not None:
             progress(f"command delay fitted from the log: {profile_text(delay_fit)}")

@@ -367,8 +367,8 @@ def test_log_at_command_delay(world):
     np.testing.assert_array_equal(given.controls, log.at_command_delay(0.1).controls)
     fitted, fit = cd.log_at_command_delay(log, config, jax.random.PRNGKey(0), "auto")
     # the end-to-end fit above from the calibration's first settings (0.264-0.275 s on
-    # seeds 0-3), here from the log's own stream (0.01 m pure-turn threshold: every move of
-    # this world is about 0.1 m, so the moves are the same)
+    # seeds 0-3), here from the log's own stream (1 mm pure-turn threshold, as the world's
+    # own moves_at: the moves are the same)
     assert abs(fit.delay - TRUE_DELAY) < 0.03, fit
     np.testing.assert_array_equal(fitted.controls, log.at_command_delay(fit.delay).controls)
 
@@ -379,9 +379,13 @@ def test_a_log_without_revisits_is_refused(world):
     once = np.full(world.ids.shape, -1)
     rows, cols = np.nonzero(world.ids >= 0)
     once[rows[:30], cols[:30]] = np.arange(30)  # 30 observations, each its own landmark
-    with pytest.raises(ValueError, match="only 0 observations belong to landmarks seen twice"):
+    with pytest.raises(cd.DelayFitError,
+                       match="only 0 observations belong to landmarks seen twice"):
         cd.fit_command_delay(world.moves_at, world.start, path, world.z, once, world.params)
-    once[rows[30:49], cols[30:49]] = 0  # 20 observations of landmark 0: enough
+    once[rows[30:48], cols[30:48]] = 0  # 18 more: 19 with the first, one short
+    with pytest.raises(cd.DelayFitError, match="only 19 observations"):
+        cd.fit_command_delay(world.moves_at, world.start, path, world.z, once, world.params)
+    once[rows[48], cols[48]] = 0  # the 20th observation of landmark 0: enough
     fit = cd.fit_command_delay(world.moves_at, world.start, path, world.z, once, world.params)
     assert np.isfinite(fit.delay)
 

@@ -253,7 +253,7 @@ def _apply_command_delay(args, log):
     when the option was not given."""
     import jax
 
-    from jaxslam.command_delay import log_at_command_delay, profile_text
+    from jaxslam.command_delay import DelayFitError, log_at_command_delay, profile_text
     from jaxslam.self_calibration import starting_params
 
     choice = getattr(args, "command_delay", None)
@@ -272,7 +272,7 @@ def _apply_command_delay(args, log):
     try:
         delayed, fit = log_at_command_delay(log, filter_config, jax.random.PRNGKey(args.seed),
                                             choice, params)
-    except ValueError as error:  # a log that cannot give the lag: say why, in one line
+    except DelayFitError as error:  # a log that cannot give the lag: say why, in one line
         raise UsageError(f"--command-delay {choice}: {error}") from error
     if fit is None:
         print(f"commands {choice:+.3f} s late: moves rebuilt from the command stream")
