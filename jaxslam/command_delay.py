@@ -157,7 +157,7 @@ def search_minimum(criterion: Callable[[int], float], max_steps: int,
 
     spacing = 2 ** refinements
     best, direction = 0, spacing
-    value(0)
+    value(0)  # the start first: a criterion that fails there is named at the start
     if not value(spacing) < value(0):
         direction = -spacing
     while abs(best + direction) <= max_steps * spacing and \
@@ -363,12 +363,21 @@ def command_delay_choice(text: str):
 
 
 def log_at_command_delay(log, config: FilterConfig, key, command_delay,
-                         params: Params | None = None):
+                         params: Params | None = None, progress=None):
     """(log, fit): a ``RobotLog`` that holds its command stream rebuilt with the commands
     ``command_delay`` seconds late (``RobotLog.at_command_delay``), or for "auto" at the
     delay ``fit_log_command_delay`` fits from it (key ``key``, starting point ``params``);
-    fit is that ``DelayFit``, None for a number given."""
-    if command_delay == "auto":
-        fit = fit_log_command_delay(log.at_command_delay, config, key, params)
-        return log.at_command_delay(fit.delay), fit
-    return log.at_command_delay(float(command_delay)), None
+    fit is that ``DelayFit``, None for a number given. ``progress``: optional callable(str)
+    told of the delay, and before a fit that one is under way."""
+    if command_delay != "auto":
+        if progress is not None:
+            progress(f"commands {float(command_delay):+.3f} s late: moves rebuilt from the "
+                     "command stream")
+        return log.at_command_delay(float(command_delay)), None
+    if progress is not None:
+        progress("fitting the commands' lag from the log (a filter run and a few "
+                 "smoothings) ...")
+    fit = fit_log_command_delay(log.at_command_delay, config, key, params)
+    if progress is not None:
+        progress(f"command delay fitted from the log: {profile_text(fit)}")
+    return log.at_command_delay(fit.delay), fit

@@ -241,14 +241,10 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
     key = jax.random.PRNGKey(0) if key is None else key
     delay_fit = None
     if command_delay is not None:
-        from jaxslam.command_delay import log_at_command_delay, profile_text
+        from jaxslam.command_delay import log_at_command_delay
 
-        if progress is not None and command_delay == "auto":
-            progress("fitting the commands' lag from the log (a filter run and a few "
-                     "smoothings) ...")
-        log, delay_fit = log_at_command_delay(log, config, key, command_delay, params)
-        if progress is not None and delay_fit is not None:
-            progress(f"command delay fitted from the log: {profile_text(delay_fit)}")
+        log, delay_fit = log_at_command_delay(log, config, key, command_delay, params,
+                                              progress)
     config, controls, obs, start = log_inputs(log, config)
     from jaxslam.validation import observation_units_warnings  # units guard (issue 18)
     units = observation_units_warnings(np.asarray(obs.z), np.asarray(obs.valid), max_range=(

@@ -253,7 +253,7 @@ def _apply_command_delay(args, log):
     when the option was not given."""
     import jax
 
-    from jaxslam.command_delay import DelayFitError, log_at_command_delay, profile_text
+    from jaxslam.command_delay import DelayFitError, log_at_command_delay
     from jaxslam.self_calibration import starting_params
 
     choice = getattr(args, "command_delay", None)
@@ -267,18 +267,12 @@ def _apply_command_delay(args, log):
     study, filter_config, params, _ = _log_settings(args, log)
     if getattr(args, "params", None) is None:  # the calibration's start, also --no-calibrate
         params = starting_params(filter_config, **dict(study.params))
-    if choice == "auto":
-        print("fitting the commands' lag from the log (a filter run and a few smoothings) ...")
     try:
         delayed, fit = log_at_command_delay(log, filter_config, jax.random.PRNGKey(args.seed),
-                                            choice, params)
+                                            choice, params, progress=print)
     except DelayFitError as error:  # a log that cannot give the lag: say why, in one line
         raise UsageError(f"--command-delay {choice}: {error}") from error
-    if fit is None:
-        print(f"commands {choice:+.3f} s late: moves rebuilt from the command stream")
-        return delayed, float(choice)
-    print(f"command delay fitted from the log: {profile_text(fit)}")
-    return delayed, fit.delay
+    return delayed, float(choice) if fit is None else fit.delay
 
 
 def _filter_log(args, log):
