@@ -86,9 +86,16 @@ def main(argv=None):
                         help="also run the calibrated settings with this many more filter keys "
                              "(100, 101, ...) and print their median ratio: single runs of "
                              "one setting vary by up to 2.8x on these robots")
+    parser.add_argument("--filter-particles", type=int, default=None,
+                        help="particles of the --filter-keys runs (default: --particles); "
+                             "the calibration and the key-0 run keep --particles, so this "
+                             "measures what a larger compute budget gives the same settings")
     args = parser.parse_args(argv)
     if args.filter_keys < 0:
         parser.error(f"--filter-keys {args.filter_keys}: expected 0 or more")
+    if args.filter_particles is not None and (args.filter_particles < 1 or not args.filter_keys):
+        parser.error(f"--filter-particles {args.filter_particles}: expected a count of 1 or "
+                     "more, with --filter-keys")
     if args.barcodes != "none" and (args.no_calibrate or args.close_loops):
         parser.error("--barcodes calibrates and filters only (no --no-calibrate, "
                      "--close-loops)")
@@ -154,10 +161,13 @@ def main(argv=None):
         for line in run.warnings:
             print("   WARNING:", line)
         if args.filter_keys:
+            keys_config = dataclasses.replace(
+                config, num_particles=args.filter_particles or args.particles)
             median, ratios, _, kept = filter_variant(
-                run.params, pipeline.log_inputs(log, config), truth, dr_ate,
+                run.params, pipeline.log_inputs(log, keys_config), truth, dr_ate,
                 range(100, 100 + args.filter_keys))
-            print(f"   filter keys 100-{99 + args.filter_keys}: dead reckoning / filter ATE "
+            print(f"   filter keys 100-{99 + args.filter_keys} "
+                  f"(P = {keys_config.num_particles}): dead reckoning / filter ATE "
                   f"median {median:.2f}x ({' '.join(f'{r:.2f}' for r in ratios)}); "
                   f"landmarks kept, median {kept:.0f}", flush=True)
     rows = np.asarray(rows)

@@ -73,6 +73,11 @@ def test_command_delay_argument(capsys):
     with pytest.raises(SystemExit):
         experiment.main(["--robots", "1", "--filter-keys", "-1"])
     assert "--filter-keys -1" in capsys.readouterr().err
+    for extra in (["--filter-particles", "0", "--filter-keys", "2"],
+                  ["--filter-particles", "1000"]):
+        with pytest.raises(SystemExit):
+            experiment.main(["--robots", "1", *extra])
+        assert "expected a count of 1 or more, with --filter-keys" in capsys.readouterr().err
 
 
 def test_start_params_sets_only_the_existence_cap():
