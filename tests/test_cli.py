@@ -429,6 +429,12 @@ def test_run_calibrates_a_user_log_by_default(tmp_path, monkeypatch, capsys):
     status, out, reused = _run_noisy(tmp_path, monkeypatch, capsys, "--params", str(saved))
     assert status == 0 and "calibration:" not in out
     assert reused["ate_rmse"] == calibrated["ate_rmse"]
+    # ... and at another particle count (docs/cli.md: calibrate small, filter large): the
+    # later --set wins, the file's settings are used as they are, nothing is calibrated.
+    status, out, larger = _run_noisy(tmp_path, monkeypatch, capsys, "--params", str(saved),
+                                     "--set", "filter.num_particles=48")
+    assert status == 0 and "calibration:" not in out
+    assert larger["ate_rmse"] != calibrated["ate_rmse"]  # another filter: 48 particles
 
 
 def test_defaults_on_a_user_log_warn_in_plain_words(tmp_path, monkeypatch, capsys):
