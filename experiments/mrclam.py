@@ -93,9 +93,11 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.filter_keys < 0:
         parser.error(f"--filter-keys {args.filter_keys}: expected 0 or more")
-    if args.filter_particles is not None and (args.filter_particles < 1 or not args.filter_keys):
-        parser.error(f"--filter-particles {args.filter_particles}: expected a count of 1 or "
-                     "more, with --filter-keys")
+    if args.filter_particles is not None and args.filter_particles < 1:
+        parser.error(f"--filter-particles {args.filter_particles}: expected 1 or more")
+    if args.filter_particles is not None and not args.filter_keys:
+        parser.error("--filter-particles sets the particles of the --filter-keys runs: give "
+                     "--filter-keys N too")
     if args.barcodes != "none" and (args.no_calibrate or args.close_loops):
         parser.error("--barcodes calibrates and filters only (no --no-calibrate, "
                      "--close-loops)")

@@ -435,6 +435,11 @@ def test_run_calibrates_a_user_log_by_default(tmp_path, monkeypatch, capsys):
                                      "--set", "filter.num_particles=48")
     assert status == 0 and "calibration:" not in out
     assert larger["ate_rmse"] != calibrated["ate_rmse"]  # another filter: 48 particles
+    # The file's settings, not the config's: the same 48 particles with the library's
+    # defaults run another filter again.
+    status, _, defaults = _run_noisy(tmp_path, monkeypatch, capsys, "--no-calibrate",
+                                     "--set", "filter.num_particles=48")
+    assert status == 0 and defaults["ate_rmse"] != larger["ate_rmse"]
 
 
 def test_defaults_on_a_user_log_warn_in_plain_words(tmp_path, monkeypatch, capsys):

@@ -73,11 +73,17 @@ def test_command_delay_argument(capsys):
     with pytest.raises(SystemExit):
         experiment.main(["--robots", "1", "--filter-keys", "-1"])
     assert "--filter-keys -1" in capsys.readouterr().err
-    for extra in (["--filter-particles", "0", "--filter-keys", "2"],
-                  ["--filter-particles", "1000"]):
+
+
+def test_filter_particles_needs_a_count_and_the_filter_keys(capsys):
+    """``--filter-particles N`` sets the particles of the ``--filter-keys`` runs: refused
+    below 1 and without ``--filter-keys``, before any data is read."""
+    for extra, message in ((["--filter-particles", "0", "--filter-keys", "2"],
+                            "--filter-particles 0: expected 1 or more"),
+                           (["--filter-particles", "1000"], "give --filter-keys N too")):
         with pytest.raises(SystemExit):
-            experiment.main(["--robots", "1", *extra])
-        assert "expected a count of 1 or more, with --filter-keys" in capsys.readouterr().err
+            experiment.main(["--robots", "1", "--data", "/nonexistent", *extra])
+        assert message in capsys.readouterr().err
 
 
 def test_start_params_sets_only_the_existence_cap():
