@@ -8,15 +8,17 @@ particle count of ``--particles`` and with each filter key (100, 101, ...).
 
 For each step t, ``common_ancestor_depth`` walks the ancestors back until every particle of
 step t descends from one particle of an earlier step. The number of steps back is the depth of
-the most recent common ancestor. All particles' maps of a landmark last seen before that
-ancestor are copies of one map. The cloud's spread against such a landmark then comes only
-from the steps since the ancestor, not from the whole time the landmark was out of view.
+the most recent common ancestor. When a landmark was last seen before that ancestor, every
+particle's map of it descends from one map (changed since only by what each particle matched
+to it). The cloud's spread against such a landmark then comes only from the steps since the
+ancestor, not from the whole time the landmark was out of view.
 FastSLAM's loss of path diversity is this depth being short.
 
 ``resighting_gaps`` lists each re-sighting of a barcode (a step that observes a barcode seen
 before) with the steps since that barcode was last observed. The barcodes only diagnose here.
 The script prints, per run, the depth's median and 90th percentile, and the share of the
-re-sightings after a pause of over ``--pause`` steps that fall beyond the depth at their step.
+re-sightings after a pause of over ``--pause`` steps whose landmark was last seen before the
+common ancestor of the cloud that receives them (``beyond_depth_share``).
 
     python experiments/mrclam_ancestry.py [--robots 1 4] [--particles 100 1000] [--filter-keys 2]
 """
@@ -68,7 +70,7 @@ def common_ancestor_depth(ancestor) -> np.ndarray:
 def resighting_gaps(landmark, valid) -> np.ndarray:
     """(N, 2) int rows (step, gap): each step that observes a landmark seen at an earlier
     step, with the steps since its last observation (a landmark seen twice in one step
-    counts once).
+    counts once). Steps are >= 1.
 
     Args:
       landmark: (T, K) landmark id of each observation (negative: none); valid: (T, K) bool.
@@ -87,20 +89,28 @@ def resighting_gaps(landmark, valid) -> np.ndarray:
 
 
 def beyond_depth_share(gaps, depth, pause: int) -> tuple[float, float]:
-    """(share of the re-sightings after a gap over ``pause``, share of those whose gap
-    exceeds the common ancestor's depth at their step); NaN where there are none."""
+    """(share of the re-sightings after a gap over ``pause``, share of those that come after
+    the common ancestor of the cloud that receives them); NaN where there are none.
+
+    A re-sighting at step t with gap g meets the cloud after step t - 1 (step t's own
+    resampling is weighed by it, so ``depth[t]`` would be cut short by the re-sighting
+    itself). That cloud's common ancestor is the particle after step t - 1 - depth[t - 1],
+    which already holds the landmark's last sighting (step t - g) exactly when
+    g > depth[t - 1].
+    """
     gaps = np.asarray(gaps).reshape(-1, 2)
     paused = gaps[:, 1] > pause
     if not paused.any():
         return (float(np.mean(paused)) if len(gaps) else float("nan")), float("nan")
-    beyond = gaps[paused, 1] > np.asarray(depth)[gaps[paused, 0]]
+    beyond = gaps[paused, 1] > np.asarray(depth)[gaps[paused, 0] - 1]
     return float(np.mean(paused)), float(np.mean(beyond))
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default=str(DATA),
-                        help="the MRCLAM dataset 1 folder (default: ../shared/data/mrclam1)")
+                        help="the MRCLAM dataset 1 folder (default: ../shared/data/mrclam1 beside "
+                             "the repository)")
     parser.add_argument("--robots", type=int, nargs="+", default=[1, 4],
                         help="robots 1-5 (default: 1 4)")
     parser.add_argument("--particles", type=int, nargs="+", default=[100, 1000],
@@ -112,7 +122,7 @@ def main(argv=None):
                         help="re-sightings after more steps than this count as after a "
                              "pause (default: 20)")
     parser.add_argument("--seed", type=int, default=0,
-                        help="the calibration's key (default: 0)")
+                        help="the key of the lag fit and the calibration (default: 0)")
     args = parser.parse_args(argv)
     if min(args.particles) < 1 or args.filter_keys < 1 or args.pause < 0:
         parser.error("--particles needs counts of 1 or more, --filter-keys 1 or more and "

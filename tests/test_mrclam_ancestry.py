@@ -5,32 +5,39 @@ import pytest
 from experiments import mrclam_ancestry as ancestry
 
 
-def _depth_by_composition(ancestor):
-    """Reference: compose each particle's ancestry step by step (an (P,) array of the
-    ancestor every particle of step t has after step t - d) until all are one."""
+def _depth_from_the_definition(ancestor):
+    """Reference: for d = 1, 2, ..., follow every particle of step t back d steps on its own
+    (particle i after step t -> ancestor[t][i] after t - 1 -> ...) and take the first d at
+    which they all reach one particle; t + 1 when none does."""
     ancestor = np.asarray(ancestor)
-    num_steps = ancestor.shape[0]
+    num_steps, num_particles = ancestor.shape
     depth = []
     for t in range(num_steps):
-        line = ancestor[t].copy()  # each particle's ancestor after step t - 1
-        d = 1
-        while len(set(line.tolist())) > 1 and t - d >= 0:
-            line = ancestor[t - d][line]
-            d += 1
-        depth.append(d if len(set(line.tolist())) == 1 else t + 1)
+        found = t + 1
+        for d in range(1, t + 1):
+            reached = set()
+            for i in range(num_particles):
+                j = i
+                for u in range(t, t - d, -1):
+                    j = int(ancestor[u][j])
+                reached.add(j)
+            if len(reached) == 1:
+                found = d
+                break
+        depth.append(found)
     return np.asarray(depth)
 
 
-def test_depth_against_a_composition_reference_on_random_ancestries():
+def test_depth_against_the_definition_on_random_ancestries():
     rng = np.random.default_rng(0)
     for num_particles in (1, 2, 5, 40):
         for keep in (0.0, 0.5, 0.95):  # share of particles that keep their own line a step
-            steps = 60
+            steps = 30
             own = np.arange(num_particles)
             drawn = rng.integers(0, num_particles, size=(steps, num_particles))
             ancestor = np.where(rng.random((steps, num_particles)) < keep, own, drawn)
             depth = ancestry.common_ancestor_depth(ancestor)
-            np.testing.assert_array_equal(depth, _depth_by_composition(ancestor))
+            np.testing.assert_array_equal(depth, _depth_from_the_definition(ancestor))
             assert depth.shape == (steps,)
             assert np.all((depth >= 1) & (depth <= np.arange(1, steps + 1)))
 
@@ -62,11 +69,17 @@ def test_resighting_gaps_by_hand():
 
 
 def test_beyond_depth_share():
+    # A re-sighting at step t is judged by the cloud after step t - 1: depth[t - 1].
     gaps = np.array([[5, 1], [6, 30], [7, 25], [8, 40]])
-    depth = np.array([1, 1, 1, 1, 1, 1, 35, 20, 50])
+    depth = np.array([1, 1, 1, 1, 1, 35, 20, 50, 1])
     paused, beyond = ancestry.beyond_depth_share(gaps, depth, pause=20)
     assert paused == 0.75  # gaps 30, 25, 40 of four
-    assert beyond == pytest.approx(1 / 3)  # only 25 > 20 at step 7
+    assert beyond == pytest.approx(1 / 3)  # only step 7's 25 > depth[6] = 20
+    # The boundary: last seen at the ancestor's own step (g = depth + 1) is beyond it;
+    # last seen one step after it (g = depth) is not.
+    depth = np.full(12, 4)
+    assert ancestry.beyond_depth_share(np.array([[10, 5]]), depth, pause=0) == (1.0, 1.0)
+    assert ancestry.beyond_depth_share(np.array([[10, 4]]), depth, pause=0) == (1.0, 0.0)
     paused, beyond = ancestry.beyond_depth_share(gaps[:1], depth, pause=20)
     assert paused == 0.0 and np.isnan(beyond)
     paused, beyond = ancestry.beyond_depth_share(np.zeros((0, 2), int), depth, pause=20)
