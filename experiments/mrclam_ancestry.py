@@ -99,6 +99,9 @@ def beyond_depth_share(gaps, depth, pause: int) -> tuple[float, float]:
     g > depth[t - 1].
     """
     gaps = np.asarray(gaps).reshape(-1, 2)
+    if len(gaps) and gaps[:, 0].min() < 1:  # step 0 has no cloud before it to judge by
+        raise ValueError(f"re-sighting steps must be >= 1 (``resighting_gaps``' rows); got "
+                         f"{int(gaps[:, 0].min())}")
     paused = gaps[:, 1] > pause
     if not paused.any():
         return (float(np.mean(paused)) if len(gaps) else float("nan")), float("nan")

@@ -84,6 +84,8 @@ def test_beyond_depth_share():
     assert paused == 0.0 and np.isnan(beyond)
     paused, beyond = ancestry.beyond_depth_share(np.zeros((0, 2), int), depth, pause=20)
     assert np.isnan(paused) and np.isnan(beyond)
+    with pytest.raises(ValueError, match="steps must be >= 1"):  # not depth[-1], silently
+        ancestry.beyond_depth_share(np.array([[0, 30]]), depth, pause=20)
 
 
 @pytest.mark.parametrize("extra, message", [
