@@ -38,6 +38,10 @@ from jaxslam.types import FilterConfig, Params, default_params
 UNMATCHED_WARNING = 0.5  # warn when more than this share of observations matched nothing
 ESS_COLLAPSE = 0.05  # a step's ESS below this share of P counts as collapsed
 ESS_WARNING = 0.25  # warn when more than this share of steps collapsed
+# What calibration cannot fix when a tree's observations start new landmarks.
+DRIFT_PAST_GATE = ("the pose probably drifted further than the gate between sightings of a "
+                   "tree, which then started a new landmark (more particles, "
+                   "filter.num_particles, may help)")
 CHURN_WARNING = 3.0  # warn when more than this many landmarks were started per one kept
 PLAIN_SQUARES = 1e6  # Huber threshold [whitened units] beyond any residual: least squares
 
@@ -69,7 +73,8 @@ class LogRun(NamedTuple):
 
 
 def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int,
-                 births: int = 0, false_alarm_probability: float = 0.0) -> list[str]:
+                 births: int = 0, false_alarm_probability: float = 0.0,
+                 calibrated: bool = False) -> list[str]:
     """Plain-word warnings about a finished run (each names the number behind it).
 
     Churn: a false alarm starts a landmark that is never seen again and is deleted, so a run
@@ -87,6 +92,10 @@ def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int
         as given (0: every landmark started counts as churn). Uncalibrated, the library
         default 0.05 forgives one start per 20 valid observations, so on a log with many
         observations a map's churn must be larger before this warns.
+      calibrated: the run's settings were calibrated from this log. The unmatched and churn
+        warnings then name what calibration does not fix (the pose drifting past the gate
+        between sightings of a tree; a detector that misses a tree in view for longer than
+        its detection probability allows) instead of advising to calibrate.
     """
     valid = np.asarray(valid)
     out = []
@@ -99,9 +108,11 @@ def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int
     if total == 0:
         out.append("the log has no valid observation: the result is dead reckoning")
     elif unmatched_share > UNMATCHED_WARNING:
-        out.append(f"{unmatched_share:.0%} of the observations matched no landmark: the "
-                   "sensor noise or the gate is probably too tight for this log (calibrate, "
-                   "or raise range_noise / bearing_noise / association_gate)")
+        out.append(f"{unmatched_share:.0%} of the observations matched no landmark"
+                   + (f", with the noise calibrated from this log: {DRIFT_PAST_GATE}"
+                      if calibrated else
+                      ": the sensor noise or the gate is probably too tight for this log "
+                      "(calibrate, or raise range_noise / bearing_noise / association_gate)"))
     dropped = int(np.sum(np.asarray(trace.num_dropped_births)))
     if dropped:
         out.append(f"the map slots were full: {dropped} landmark births were dropped "
@@ -130,10 +141,15 @@ def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int
             expected = (f", about {clutter} of them expected as false alarms at "
                         f"false_alarm_probability {false_alarm_probability:.3g}"
                         if clutter else "")
+            why = (f"with the noise calibrated from this log. Either {DRIFT_PAST_GATE}, or "
+                   "the detector misses a tree in view for longer than "
+                   "params.detection_probability allows, so it is deleted (for static "
+                   "landmarks raise params.existence_max; that also keeps the duplicates a "
+                   "drifting association starts)" if calibrated else
+                   "observations of one tree are not being matched to it, so the sensor "
+                   "noise or the gate is probably too tight (calibrate)")
             out.append(f"landmarks were started and deleted over and over ({births} started"
-                       f"{expected}; {kept} kept): observations of one tree are not being "
-                       "matched to it, so the sensor noise or the gate is probably too tight "
-                       "(calibrate)")
+                       f"{expected}; {kept} kept): {why}")
     return out
 
 
@@ -275,7 +291,8 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
               "dropped_births": int(np.sum(np.asarray(trace.num_dropped_births))), **closed}
     values.update(_truth_metrics(log, mean_pose, smoothed, est, map_match_threshold))
     warnings = run_warnings(trace, valid, share, config.num_particles, births,
-                            float(params.false_alarm_probability))
+                            float(params.false_alarm_probability),
+                            calibrated=calibration is not None and calibration.iterations > 0)
     hint, scatter = unused_radius_hint(history, obs, params)
     warnings += hint
     values.update(scatter)

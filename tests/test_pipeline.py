@@ -65,6 +65,36 @@ def test_churn_counts_the_landmarks_started_beyond_the_expected_false_alarms():
     assert "13 started; 4 kept" in warnings[0]
 
 
+@pytest.mark.parametrize("share, births, words", [
+    (0.8, 5, "80% of the observations matched no landmark, with the noise calibrated"),
+    (0.1, 13, "13 started; 4 kept): with the noise calibrated"),
+])
+def test_calibrated_runs_name_what_calibration_does_not_fix(share, births, words):
+    """After a calibration the unmatched and churn warnings no longer advise to calibrate:
+    they name the drift past the gate (and, for churn, the existence cap); uncalibrated they
+    still do."""
+    calibrated = pipeline.run_warnings(_trace(landmarks=4), VALID, share, P, births,
+                                       calibrated=True)
+    assert len(calibrated) == 1 and words in calibrated[0]
+    assert "drifted further than the gate" in calibrated[0]
+    assert "(calibrate" not in calibrated[0]
+    assert ("params.existence_max" in calibrated[0]) == (births == 13)
+    plain = pipeline.run_warnings(_trace(landmarks=4), VALID, share, P, births)
+    assert len(plain) == 1 and "(calibrate" in plain[0] and "calibrated" not in plain[0]
+
+
+def _spy_on_warnings(monkeypatch):
+    """The ``calibrated`` flag of every ``run_warnings`` call ``filter_log`` makes."""
+    seen, real = [], pipeline.run_warnings
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("calibrated", False))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "run_warnings", spy)
+    return seen
+
+
 def test_edges_of_the_warning_thresholds():
     # Exactly at a threshold is no warning: half unmatched, a quarter of steps collapsed,
     # three births per kept landmark.
@@ -122,10 +152,11 @@ def test_filter_log_close_loops_needs_smoothing_without_visits():
             pipeline.filter_log(_log(), config, None, calibrate=False, **options)
 
 
-def test_filter_log_smooth_rounds_reach_the_smoother_and_bad_counts_fail_early():
+def test_filter_log_smooth_rounds_reach_the_smoother_and_bad_counts_fail_early(monkeypatch):
     from jaxslam import lineage
 
     config = FilterConfig(num_particles=8, max_landmarks=16)
+    seen = _spy_on_warnings(monkeypatch)
     for bad in (-1, 1.5, True, "2"):
         with pytest.raises(ValueError, match="smooth_rounds must be None"):
             pipeline.filter_log(_log(), config, None, calibrate=False, smooth=True,
@@ -135,6 +166,7 @@ def test_filter_log_smooth_rounds_reach_the_smoother_and_bad_counts_fail_early()
             for rounds in (None, 0)}
     # The filter runs are the same; only the smoother's weighting differs.
     np.testing.assert_array_equal(runs[None].mean_pose, runs[0].mean_pose)
+    assert seen == [False, False]  # not calibrated: the warnings may advise to calibrate
     run = runs[0]
     config_, controls, obs, start = pipeline.log_inputs(_log(40), config)
     history = lineage.trace_lineage(run.trace.lineage, run.estimate.best_particle)
@@ -148,8 +180,9 @@ def test_filter_log_smooth_rounds_reach_the_smoother_and_bad_counts_fail_early()
     assert not np.array_equal(runs[None].smoothed_pose, runs[0].smoothed_pose)
 
 
-def test_filter_log_calibrates_and_smooths():
+def test_filter_log_calibrates_and_smooths(monkeypatch):
     config = FilterConfig(num_particles=8, max_landmarks=16)
+    seen = _spy_on_warnings(monkeypatch)
     run = pipeline.filter_log(_log(40), config, None, jax.random.PRNGKey(0), smooth=True,
                               calibration_options=dict(iterations=2))
     assert run.calibration is not None and run.calibration.iterations >= 1
@@ -159,6 +192,7 @@ def test_filter_log_calibrates_and_smooths():
     # behind are not deleted as missed: all five stay mapped.
     assert 5.5 <= float(run.params.max_range) <= 6.0 * 1.02 + 1e-6
     assert run.metrics["num_trees_mapped"] == 5
+    assert seen == [True]  # the warnings know the settings came from this log
 
 
 def _radius_log(radius_noise, with_radii=True):
