@@ -17,11 +17,13 @@ Cases, each timed as compile time and run time apart (after ``block_until_ready`
            fastest call (the steadier figure on a shared VM) are both reported.
   batched  R such runs vmapped in one call: time a run-step = run time / (R T).
   study    R runs x P = 100 x M = 64 x K = 16 x T (the issue's batched case) on the default
-           simulated forest: particle-steps per second. With ``--association-window N`` each
-           particle matches against its N nearest landmarks only; the row then gives the
-           window cut, the most landmarks that could have taken part but fell outside the
-           window in any step of any run (``StepInfo.window_cut``): 0 means the runs are the
-           full association's, so the speed is the same filter's.
+           simulated forest: particle-steps per second.
+
+With ``--association-window N`` (any case) each particle matches against its N nearest
+landmarks only (N below the case's M slots); the row then gives the window cut, the most
+landmarks that could have taken part but fell outside the window in any step of any run
+(``StepInfo.window_cut``): 0 means the runs are the full association's, so the speed is the
+same filter's.
 
 Ratios are PythonRobotics' 27.4 ms over jaxslam's time a (run-)step; the issue's targets are
 >= 200x (single), >= 1000x (batched) and >= 200 k particle-steps/s (study).
@@ -33,6 +35,7 @@ Usage:
   python benchmarks/throughput.py --cases single --proposal motion --repeats 40
   python benchmarks/throughput.py --cases single --proposal motion --single-particles 1 10 100
   python benchmarks/throughput.py --cases study --proposal motion --association-window 24
+  python benchmarks/throughput.py --cases batched --proposal motion --association-window 8
 """
 from __future__ import annotations
 
@@ -60,10 +63,11 @@ def _jaxslam_dir() -> str:
     return str(pathlib.Path(jaxslam.__file__).resolve().parent)
 
 
-def _config(num_particles, max_landmarks, max_obs, proposal):
+def _config(num_particles, max_landmarks, max_obs, proposal, association_window=0):
     from jaxslam.types import FilterConfig
 
-    fields = dict(num_particles=num_particles, max_landmarks=max_landmarks, max_obs=max_obs)
+    fields = dict(num_particles=num_particles, max_landmarks=max_landmarks, max_obs=max_obs,
+                  association_window=association_window)
     if proposal != "default":
         fields["proposal"] = proposal
     return FilterConfig(**fields)
@@ -98,7 +102,7 @@ def _timed(fn, *args, repeats=3):
     return compile_s, np.asarray(times), out
 
 
-def bench_single(proposal, num_steps, repeats=5, num_particles=100):
+def bench_single(proposal, num_steps, repeats=5, num_particles=100, association_window=0):
     """One run as one call, and the same run one Python call a step, with ``num_particles``
     particles (PythonRobotics' scale is 100; at other P the printed ratio is not like for
     like and says so).
@@ -111,7 +115,7 @@ def bench_single(proposal, num_steps, repeats=5, num_particles=100):
     from jaxslam.filter import make_filter, run_filter
     from jaxslam.types import default_params
 
-    config = _config(num_particles, 16, 8, proposal)
+    config = _config(num_particles, 16, 8, proposal, association_window)
     params = default_params(config, max_range=20.0)
     batch = _small_world(1, num_steps, 8)
     controls, observations = batch.controls[0], jax.tree.map(lambda a: a[0], batch.observations)
@@ -121,7 +125,7 @@ def bench_single(proposal, num_steps, repeats=5, num_particles=100):
     def whole(key, controls, observations):
         return run_filter(config, key, params, controls, observations, initial_pose=start)[1]
 
-    compile_s, run_times, _ = _timed(whole, key, controls, observations, repeats=repeats)
+    compile_s, run_times, trace = _timed(whole, key, controls, observations, repeats=repeats)
     run_s, fastest_s = float(np.median(run_times)), float(np.min(run_times))
     per_step_s = run_s / num_steps
 
@@ -141,14 +145,16 @@ def bench_single(proposal, num_steps, repeats=5, num_particles=100):
     jax.block_until_ready(state)
     called_s = (time.perf_counter() - tick) / num_steps
     row = dict(case="single", proposal=proposal, P=num_particles, M=16, K=8, T=num_steps,
-               compile_s=compile_s, run_s=run_s, step_ms=1e3 * per_step_s,
+               **_window_fields(association_window, trace.window_cut), compile_s=compile_s,
+               run_s=run_s, step_ms=1e3 * per_step_s,
                ratio=PYTHONROBOTICS_STEP_S / per_step_s, repeats=repeats,
                step_ms_fastest=1e3 * fastest_s / num_steps,
                ratio_fastest=PYTHONROBOTICS_STEP_S * num_steps / fastest_s,
                step_called_per_step_ms=1e3 * called_s,
                ratio_called_per_step=PYTHONROBOTICS_STEP_S / called_s,
                target=TARGETS["single"])
-    print(f"single   proposal={proposal:11s} P={num_particles} M=16 K=8 T={num_steps}: compile "
+    print(f"single   proposal={proposal:11s} P={num_particles} M=16 K=8 T={num_steps}"
+          f"{_window_text(row)}: compile "
           f"{compile_s:5.1f} s, run {run_s:6.3f} s = {row['step_ms']:.3f} ms a step "
           f"({row['ratio']:.0f}x PythonRobotics"
           + ("" if num_particles == 100 else " at P = 100, not like for like")
@@ -159,12 +165,26 @@ def bench_single(proposal, num_steps, repeats=5, num_particles=100):
     return row
 
 
-def bench_batched(proposal, num_runs, num_steps):
+def _window_fields(association_window, window_cut):
+    """The row's association window and its cut: the most landmarks that could have taken
+    part but fell outside the window in any step of any run (0: the runs match as with every
+    slot; None without a window)."""
+    cut = (None if not association_window or window_cut is None
+           else int(np.max(np.asarray(window_cut))))
+    return dict(association_window=association_window, window_cut=cut)
+
+
+def _window_text(row):
+    return ("" if not row["association_window"] else
+            f" window {row['association_window']} (cut {row['window_cut']})")
+
+
+def bench_batched(proposal, num_runs, num_steps, association_window=0):
     """``num_runs`` small runs vmapped in one call."""
     from jaxslam.filter import run_filter
     from jaxslam.types import default_params
 
-    config = _config(100, 16, 8, proposal)
+    config = _config(100, 16, 8, proposal, association_window)
     params = default_params(config, max_range=20.0)
     batch = _small_world(num_runs, num_steps, 8)
     keys = jax.random.split(jax.random.PRNGKey(0), num_runs)
@@ -172,19 +192,21 @@ def bench_batched(proposal, num_runs, num_steps):
     def many(keys, controls, observations, starts):
         def one(key, controls, observations, start):
             trace = run_filter(config, key, params, controls, observations, initial_pose=start)[1]
-            return trace.mean_pose[-1]
+            return trace.mean_pose[-1], trace.window_cut
         return jax.vmap(one)(keys, controls, observations, starts)
 
-    compile_s, run_times, _ = _timed(many, keys, batch.controls, batch.observations,
-                                     batch.truth_pose[:, 0], repeats=1)
+    compile_s, run_times, (_, cut) = _timed(many, keys, batch.controls, batch.observations,
+                                            batch.truth_pose[:, 0], repeats=1)
     run_s = float(run_times[0])
     per_run_step_s = run_s / (num_runs * num_steps)
     row = dict(case="batched", proposal=proposal, R=num_runs, P=100, M=16, K=8, T=num_steps,
-               compile_s=compile_s, run_s=run_s, run_step_us=1e6 * per_run_step_s,
+               **_window_fields(association_window, cut), compile_s=compile_s, run_s=run_s,
+               run_step_us=1e6 * per_run_step_s,
                ratio=PYTHONROBOTICS_STEP_S / per_run_step_s,
                particle_steps_per_s=num_runs * 100 * num_steps / run_s,
                target=TARGETS["batched"])
-    print(f"batched  proposal={proposal:11s} R={num_runs} P=100 M=16 K=8 T={num_steps}: compile "
+    print(f"batched  proposal={proposal:11s} R={num_runs} P=100 M=16 K=8 T={num_steps}"
+          f"{_window_text(row)}: compile "
           f"{compile_s:5.1f} s, run {run_s:6.2f} s = {row['run_step_us']:.2f} us a run-step "
           f"({row['ratio']:.0f}x PythonRobotics; target {TARGETS['batched']:.0f}x), "
           f"{row['particle_steps_per_s'] / 1e3:.0f} k particle-steps/s")
@@ -218,8 +240,10 @@ def main(argv=None):
     parser.add_argument("--chunk", type=int, default=250, help="chunk of the study case")
     parser.add_argument("--steps", type=int, default=200)
     parser.add_argument("--association-window", type=int, default=0,
-                        help="study case: match against each particle's N nearest landmarks "
-                             "(FilterConfig.association_window; 0: all M = 64)")
+                        help="match against each particle's N nearest landmarks "
+                             "(FilterConfig.association_window; every case; 0, the default: "
+                             "all M slots, 16 in the single and batched cases, 64 in the "
+                             "study)")
     parser.add_argument("--single-particles", type=int, nargs="+", default=[100], metavar="P",
                         help="particle counts of the single case (default 100, "
                              "PythonRobotics' own)")
@@ -241,10 +265,11 @@ def main(argv=None):
     rows = []
     if "single" in args.cases:
         rows += [bench_single(args.proposal, args.steps, repeats=args.repeats,
-                              num_particles=count)
+                              num_particles=count, association_window=args.association_window)
                  for count in args.single_particles]
     if "batched" in args.cases:
-        rows.append(bench_batched(args.proposal, args.runs, args.steps))
+        rows.append(bench_batched(args.proposal, args.runs, args.steps,
+                                  args.association_window))
     if "study" in args.cases:
         rows.append(bench_study(args.proposal, args.runs, args.chunk, args.steps,
                                 args.association_window))

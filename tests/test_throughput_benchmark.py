@@ -3,6 +3,7 @@ time over T, the ratio is PythonRobotics' 27.4 ms over it) and every time finite
 The full-size figures are the script's own job (issue 20; docs/results.md)."""
 import json
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -43,6 +44,19 @@ def test_tiny_study_row_with_a_window_reports_what_the_window_cut(load_benchmark
     assert math.isclose(row["particle_steps_per_s"], 2 * 100 * 5 / row["run_s"])
 
 
+def test_tiny_single_and_batched_rows_with_a_window(load_benchmark):
+    """``--association-window`` reaches the single and batched cases too: a window of 2 of
+    the M = 16 slots on 8-tree forests seen out to 20 m leaves landmarks out, and the rows say
+    so; without a window the rows carry no cut."""
+    throughput = load_benchmark("throughput")
+    arguments = ["--proposal", "motion", "--cases", "single", "batched", "--runs", "2",
+                 "--steps", "5", "--repeats", "1"]
+    for row in throughput.main(arguments + ["--association-window", "2"]):
+        assert row["association_window"] == 2 and row["window_cut"] > 0, row
+    for row in throughput.main(arguments):
+        assert row["association_window"] == 0 and row["window_cut"] is None, row
+
+
 def test_single_case_at_several_particle_counts(load_benchmark):
     """``--single-particles`` gives one single row per P, in order, each with its own P."""
     throughput = load_benchmark("throughput")
@@ -62,7 +76,7 @@ def test_single_row_takes_the_median_and_the_fastest_of_the_timed_calls(load_ben
 
     def fixed_times(fn, *args, repeats=3):
         asked.append(repeats)
-        return 2.0, np.array([0.5, 0.1, 0.3, 0.2]), None
+        return 2.0, np.array([0.5, 0.1, 0.3, 0.2]), SimpleNamespace(window_cut=None)
 
     monkeypatch.setattr(throughput, "_timed", fixed_times)
     (row,) = throughput.main(["--proposal", "motion", "--cases", "single", "--steps", "4",
