@@ -230,21 +230,14 @@ CONFIG = FilterConfig(num_particles=16, max_landmarks=64, max_obs=10, associatio
 @functools.lru_cache(maxsize=1)
 def _calibrated_log():
     """A 120-step loop through 30 trees (the sims scenario), calibrated as a user would."""
-    from sims.forest import random_forest
-    from sims.paths import loop_path
-    from sims.scenario import build_scenario
+    from loop_log import loop_log  # tests/ is on sys.path
 
     truth = default_params(rot1_noise=(0.0, 0.1, 0.001), trans_noise=(0.04, 0.0, 0.001),
                            rot2_noise=(0.0, 0.1, 0.001), range_noise=(0.01, 0.03),
                            bearing_noise=(0.001, 0.004), range_std_floor=1e-4,
                            bearing_std_floor=1e-5, max_range=12.0)
-    key_forest, key_runs = jax.random.split(jax.random.PRNGKey(21))
-    path = loop_path(120, (30.0, 30.0), (12.0, 12.0), 0.5)
-    forest = random_forest(key_forest, 30, (60.0, 60.0), keep_clear=path[:, :2])
-    scenario = build_scenario(key_runs, forest, path, 1, params=truth, max_obs=10)
-    controls = scenario.controls[0]
-    obs = jax.tree.map(lambda a: a[0], scenario.observations)
-    start = scenario.poses[0][0]
+    controls, obs, poses = loop_log(21, 120, 30, 12.0, truth)
+    start = poses[0]
     params, info = sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, start,
                                        iterations=3, scale_search=False)
     return controls, obs, start, params, info

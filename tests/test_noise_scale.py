@@ -14,9 +14,7 @@ from jaxslam import noise_scale as ns
 from jaxslam import self_calibration
 from jaxslam.filter import run_filter
 from jaxslam.types import FilterConfig, default_params
-from sims.forest import random_forest
-from sims.paths import loop_path
-from sims.scenario import build_scenario
+from loop_log import loop_log  # tests/ is on sys.path
 
 CONFIG = FilterConfig(num_particles=16, max_landmarks=48, max_obs=10)
 
@@ -31,12 +29,7 @@ def _true_params():
 @functools.lru_cache(maxsize=1)
 def _log():
     """A 120-step loop through 30 trees with ``_true_params``' noise."""
-    key_forest, key_runs = jax.random.split(jax.random.PRNGKey(11))
-    path = loop_path(120, (30.0, 30.0), (12.0, 12.0), 0.5)
-    forest = random_forest(key_forest, 30, (60.0, 60.0), keep_clear=path[:, :2])
-    scenario = build_scenario(key_runs, forest, path, 1, params=_true_params(), max_obs=10)
-    return (scenario.controls[0], jax.tree.map(lambda a: a[0], scenario.observations),
-            scenario.poses[0])
+    return loop_log(11, 120, 30, 12.0, _true_params())
 
 
 def test_scaled_noise_matches_numpy_for_scalars_and_batches():

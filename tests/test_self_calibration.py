@@ -20,9 +20,7 @@ from jaxslam.noise_fit import (host_motion_fit, host_observation_fit,
                                radius_noise_from_history,
                                radius_noise_relative_error, rescale)
 from jaxslam.types import FilterConfig, default_params, make_observations
-from sims.forest import random_forest
-from sims.paths import loop_path
-from sims.scenario import build_scenario
+from loop_log import loop_log  # tests/ is on sys.path
 
 CONFIG = FilterConfig(num_particles=16, max_landmarks=64, max_obs=10, association="known")
 
@@ -37,12 +35,7 @@ def _true_params():
 @functools.lru_cache(maxsize=1)
 def _log():
     """A 200-step loop through 40 trees, sensor and odometry noise as ``_true_params``."""
-    key_forest, key_runs = jax.random.split(jax.random.PRNGKey(7))
-    path = loop_path(200, (30.0, 30.0), (16.0, 16.0), 0.5)
-    forest = random_forest(key_forest, 40, (60.0, 60.0), keep_clear=path[:, :2])
-    scenario = build_scenario(key_runs, forest, path, 1, params=_true_params(), max_obs=10)
-    return (scenario.controls[0], jax.tree.map(lambda a: a[0], scenario.observations),
-            scenario.poses[0])
+    return loop_log(7, 200, 40, 16.0, _true_params())
 
 
 @functools.lru_cache(maxsize=1)
