@@ -39,9 +39,9 @@ UNMATCHED_WARNING = 0.5  # warn when more than this share of observations matche
 ESS_COLLAPSE = 0.05  # a step's ESS below this share of P counts as collapsed
 ESS_WARNING = 0.25  # warn when more than this share of steps collapsed
 # What calibration cannot fix when a tree's observations start new landmarks.
-DRIFT_PAST_GATE = ("the pose probably drifted further than the gate between sightings of a "
-                   "tree, which then started a new landmark (more particles, "
-                   "filter.num_particles, may help)")
+DRIFT_PAST_GATE = ("the pose drifts further than params.association_gate allows between "
+                   "sightings of a tree, so its next sighting starts a new landmark (more "
+                   "particles, filter.num_particles, may help)")
 CHURN_WARNING = 3.0  # warn when more than this many landmarks were started per one kept
 PLAIN_SQUARES = 1e6  # Huber threshold [whitened units] beyond any residual: least squares
 
@@ -92,10 +92,11 @@ def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int
         as given (0: every landmark started counts as churn). Uncalibrated, the library
         default 0.05 forgives one start per 20 valid observations, so on a log with many
         observations a map's churn must be larger before this warns.
-      calibrated: the run's settings were calibrated from this log. The unmatched and churn
-        warnings then name what calibration does not fix (the pose drifting past the gate
-        between sightings of a tree; a detector that misses a tree in view for longer than
-        its detection probability allows) instead of advising to calibrate.
+      calibrated: the run's sensor noise was calibrated (``sensor_noise_calibrated``, or a
+        saved calibration reused). The unmatched and churn warnings then name the likely
+        causes calibration does not fix (the pose drifting past the gate between sightings
+        of a tree; a detector that misses a tree in view for longer than its detection
+        probability allows) instead of advising to calibrate.
     """
     valid = np.asarray(valid)
     out = []
@@ -109,10 +110,11 @@ def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int
         out.append("the log has no valid observation: the result is dead reckoning")
     elif unmatched_share > UNMATCHED_WARNING:
         out.append(f"{unmatched_share:.0%} of the observations matched no landmark"
-                   + (f", with the noise calibrated from this log: {DRIFT_PAST_GATE}"
-                      if calibrated else
+                   + (f" although the sensor noise was calibrated. Likely cause: "
+                      f"{DRIFT_PAST_GATE}" if calibrated else
                       ": the sensor noise or the gate is probably too tight for this log "
                       "(calibrate, or raise range_noise / bearing_noise / association_gate)"))
+    drift_said = calibrated and total > 0 and unmatched_share > UNMATCHED_WARNING
     dropped = int(np.sum(np.asarray(trace.num_dropped_births)))
     if dropped:
         out.append(f"the map slots were full: {dropped} landmark births were dropped "
@@ -141,16 +143,25 @@ def run_warnings(trace: Trace, valid, unmatched_share: float, num_particles: int
             expected = (f", about {clutter} of them expected as false alarms at "
                         f"false_alarm_probability {false_alarm_probability:.3g}"
                         if clutter else "")
-            why = (f"with the noise calibrated from this log. Either {DRIFT_PAST_GATE}, or "
+            drift = "the drift named above" if drift_said else DRIFT_PAST_GATE
+            why = (f" although the sensor noise was calibrated. Likely causes: {drift}; or "
                    "the detector misses a tree in view for longer than "
-                   "params.detection_probability allows, so it is deleted (for static "
-                   "landmarks raise params.existence_max; that also keeps the duplicates a "
-                   "drifting association starts)" if calibrated else
-                   "observations of one tree are not being matched to it, so the sensor "
+                   "params.detection_probability allows, so its landmark is deleted (for "
+                   "static landmarks raise params.existence_max, which also keeps the "
+                   "duplicates that drift starts)" if calibrated else
+                   ": observations of one tree are not being matched to it, so the sensor "
                    "noise or the gate is probably too tight (calibrate)")
             out.append(f"landmarks were started and deleted over and over ({births} started"
-                       f"{expected}; {kept} kept): {why}")
+                       f"{expected}; {kept} kept){why}")
     return out
+
+
+def sensor_noise_calibrated(calibration: CalibrationInfo | None) -> bool:
+    """Whether ``calibration`` fitted the sensor noise behind the settings it returned (a
+    range or bearing group in ``CalibrationInfo.samples``; False for None, or when it gave
+    back its starting settings)."""
+    return calibration is not None and any(group in calibration.samples
+                                           for group in ("range", "bearing"))
 
 
 def unused_radius_hint(history: lineage.LineagePath, obs, params: Params) -> tuple[list, dict]:
@@ -225,6 +236,7 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
                map_match_threshold: float = 1.0,
                calibration_options: dict | None = None,
                command_delay: float | str | None = None,
+               settings_calibrated: bool | None = None,
                progress: Callable[[str], None] | None = None) -> LogRun:
     """Calibrate (by default), filter and evaluate one ``RobotLog`` (module docstring).
 
@@ -251,6 +263,10 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
         log (key ``key``, from ``params`` when given, else the calibration's start, also
         with ``calibrate=False``, where the run itself then uses ``default_params``);
         ``LogRun.delay_fit`` holds that fit and the metrics gain ``command_delay`` [s].
+      settings_calibrated: whether the sensor noise the run uses was calibrated, for the
+        warnings' advice (``run_warnings``' ``calibrated``): True for settings a calibration
+        saved and the caller reuses; None (default): whether this call's calibration fitted
+        it (``sensor_noise_calibrated``).
       progress: optional callable(str) told of each stage.
     """
     check_offline_options(smooth, visit_gap, close_loops, smooth_rounds)
@@ -292,7 +308,9 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
     values.update(_truth_metrics(log, mean_pose, smoothed, est, map_match_threshold))
     warnings = run_warnings(trace, valid, share, config.num_particles, births,
                             float(params.false_alarm_probability),
-                            calibrated=calibration is not None and calibration.iterations > 0)
+                            calibrated=(sensor_noise_calibrated(calibration)
+                                        if settings_calibrated is None
+                                        else settings_calibrated))
     hint, scatter = unused_radius_hint(history, obs, params)
     warnings += hint
     values.update(scatter)

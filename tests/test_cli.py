@@ -409,6 +409,16 @@ def _run_noisy(tmp_path, monkeypatch, capsys, *extra):
 
 
 def test_run_calibrates_a_user_log_by_default(tmp_path, monkeypatch, capsys):
+    from jaxslam import pipeline
+
+    # What each run tells its warnings: calibrated (or a saved calibration reused), or not.
+    told, real_warnings = [], pipeline.run_warnings
+
+    def spy(*args, **kwargs):
+        told.append(kwargs["calibrated"])
+        return real_warnings(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "run_warnings", spy)
     # The log's noise (5 cm range, 0.005 rad bearing, 1 cm / 2 % odometry) is given nowhere.
     status, out, calibrated = _run_noisy(tmp_path, monkeypatch, capsys)
     assert status == 0
@@ -440,6 +450,8 @@ def test_run_calibrates_a_user_log_by_default(tmp_path, monkeypatch, capsys):
     status, _, defaults = _run_noisy(tmp_path, monkeypatch, capsys, "--no-calibrate",
                                      "--set", "filter.num_particles=48")
     assert status == 0 and defaults["ate_rmse"] != larger["ate_rmse"]
+    # calibrated, given by hand, reused twice, defaults
+    assert told == [True, False, True, True, False]
 
 
 def test_defaults_on_a_user_log_warn_in_plain_words(tmp_path, monkeypatch, capsys):

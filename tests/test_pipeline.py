@@ -1,6 +1,8 @@
 """The log pipeline: warnings, params files, filter_log (``jaxslam.pipeline``)."""
 from __future__ import annotations
 
+import types
+
 import jax
 import numpy as np
 import pytest
@@ -66,8 +68,10 @@ def test_churn_counts_the_landmarks_started_beyond_the_expected_false_alarms():
 
 
 @pytest.mark.parametrize("share, births, words", [
-    (0.8, 5, "80% of the observations matched no landmark, with the noise calibrated"),
-    (0.1, 13, "13 started; 4 kept): with the noise calibrated"),
+    (0.8, 5, "80% of the observations matched no landmark although the sensor noise was "
+             "calibrated. Likely cause: the pose drifts"),
+    (0.1, 13, "(13 started; 4 kept) although the sensor noise was calibrated. Likely causes: "
+              "the pose drifts"),
 ])
 def test_calibrated_runs_name_what_calibration_does_not_fix(share, births, words):
     """After a calibration the unmatched and churn warnings no longer advise to calibrate:
@@ -76,11 +80,32 @@ def test_calibrated_runs_name_what_calibration_does_not_fix(share, births, words
     calibrated = pipeline.run_warnings(_trace(landmarks=4), VALID, share, P, births,
                                        calibrated=True)
     assert len(calibrated) == 1 and words in calibrated[0]
-    assert "drifted further than the gate" in calibrated[0]
+    assert "further than params.association_gate allows" in calibrated[0]
     assert "(calibrate" not in calibrated[0]
     assert ("params.existence_max" in calibrated[0]) == (births == 13)
     plain = pipeline.run_warnings(_trace(landmarks=4), VALID, share, P, births)
     assert len(plain) == 1 and "(calibrate" in plain[0] and "calibrated" not in plain[0]
+
+
+def test_calibrated_unmatched_and_churn_name_the_drift_once():
+    """Both warnings at once: the churn warning points back to the drift the unmatched
+    one names instead of repeating it."""
+    both = pipeline.run_warnings(_trace(landmarks=4), VALID, 0.8, P, births=13,
+                                 calibrated=True)
+    assert len(both) == 2
+    assert sum(pipeline.DRIFT_PAST_GATE in warning for warning in both) == 1
+    assert pipeline.DRIFT_PAST_GATE in both[0]
+    assert "Likely causes: the drift named above; or the detector misses" in both[1]
+
+
+def test_sensor_noise_calibrated_needs_a_sensor_fit_behind_the_settings():
+    """Only a calibration whose returned settings rest on a fitted range or bearing group
+    counts: none, or one that gave back its starting settings (no samples), does not."""
+    info = types.SimpleNamespace
+    assert not pipeline.sensor_noise_calibrated(None)
+    assert not pipeline.sensor_noise_calibrated(info(samples={}))
+    assert not pipeline.sensor_noise_calibrated(info(samples={"heading": 200}))
+    assert pipeline.sensor_noise_calibrated(info(samples={"range": 90, "bearing": 90}))
 
 
 def _spy_on_warnings(monkeypatch):

@@ -304,9 +304,12 @@ def _filter_log(args, log):
     options = _calibration_options(args)  # checked before the lag's fit
     log, delay = _apply_command_delay(args, log)
     study, filter_config, params, calibrate = _log_settings(args, log)
+    # A --params file is a saved calibration (``jaxslam calibrate --out``): the warnings
+    # then do not advise calibrating again.
+    reused = getattr(args, "params", None) is not None
     run = pipeline.filter_log(log, filter_config, params, jax.random.PRNGKey(args.seed),
                               calibrate=calibrate, smooth=smooth, visit_gap=visit_gap,
-                              close_loops=close,
+                              close_loops=close, settings_calibrated=True if reused else None,
                               map_match_threshold=study.map_match_threshold, progress=print,
                               calibration_options=options)
     est = run.estimate
