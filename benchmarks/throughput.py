@@ -20,7 +20,8 @@ Cases, each timed as compile time and run time apart (after ``block_until_ready`
            simulated forest: particle-steps per second.
 
 With ``--association-window N`` (any case) each particle matches against its N nearest
-landmarks only (N below the case's M slots); the row then gives the window cut, the most
+landmarks only. N of at least the case's M slots is no window, and its rows say window 0.
+A windowed row gives the window cut, the most
 landmarks that could have taken part but fell outside the window in any step of any run
 (``StepInfo.window_cut``): 0 means the runs are the full association's, so the speed is the
 same filter's.
@@ -46,6 +47,7 @@ import sys
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 # Time this checkout's jaxslam, also when an editable install points at another one (a
@@ -145,7 +147,7 @@ def bench_single(proposal, num_steps, repeats=5, num_particles=100, association_
     jax.block_until_ready(state)
     called_s = (time.perf_counter() - tick) / num_steps
     row = dict(case="single", proposal=proposal, P=num_particles, M=16, K=8, T=num_steps,
-               **_window_fields(association_window, trace.window_cut), compile_s=compile_s,
+               **_window_fields(association_window, 16, trace.window_cut), compile_s=compile_s,
                run_s=run_s, step_ms=1e3 * per_step_s,
                ratio=PYTHONROBOTICS_STEP_S / per_step_s, repeats=repeats,
                step_ms_fastest=1e3 * fastest_s / num_steps,
@@ -165,13 +167,14 @@ def bench_single(proposal, num_steps, repeats=5, num_particles=100, association_
     return row
 
 
-def _window_fields(association_window, window_cut):
-    """The row's association window and its cut: the most landmarks that could have taken
-    part but fell outside the window in any step of any run (0: the runs match as with every
-    slot; None without a window)."""
-    cut = (None if not association_window or window_cut is None
-           else int(np.max(np.asarray(window_cut))))
-    return dict(association_window=association_window, window_cut=cut)
+def _window_fields(association_window, num_slots, window_cut):
+    """The row's association window as the filter applies it (0, none, unless
+    0 < N < M = ``num_slots``: ``FilterConfig.association_window``) and its cut: the most
+    landmarks that could have taken part but fell outside the window in any step of any run
+    (0: the runs match as with every slot; None without a window)."""
+    window = association_window if 0 < association_window < num_slots else 0
+    cut = None if not window else int(np.max(np.asarray(window_cut)))
+    return dict(association_window=window, window_cut=cut)
 
 
 def _window_text(row):
@@ -192,7 +195,7 @@ def bench_batched(proposal, num_runs, num_steps, association_window=0):
     def many(keys, controls, observations, starts):
         def one(key, controls, observations, start):
             trace = run_filter(config, key, params, controls, observations, initial_pose=start)[1]
-            return trace.mean_pose[-1], trace.window_cut
+            return trace.mean_pose[-1], jnp.max(trace.window_cut)
         return jax.vmap(one)(keys, controls, observations, starts)
 
     compile_s, run_times, (_, cut) = _timed(many, keys, batch.controls, batch.observations,
@@ -200,7 +203,7 @@ def bench_batched(proposal, num_runs, num_steps, association_window=0):
     run_s = float(run_times[0])
     per_run_step_s = run_s / (num_runs * num_steps)
     row = dict(case="batched", proposal=proposal, R=num_runs, P=100, M=16, K=8, T=num_steps,
-               **_window_fields(association_window, cut), compile_s=compile_s, run_s=run_s,
+               **_window_fields(association_window, 16, cut), compile_s=compile_s, run_s=run_s,
                run_step_us=1e6 * per_run_step_s,
                ratio=PYTHONROBOTICS_STEP_S / per_run_step_s,
                particle_steps_per_s=num_runs * 100 * num_steps / run_s,
@@ -225,8 +228,8 @@ def bench_study(proposal, num_runs, chunk, num_steps, association_window=0):
     rate = (num_runs // min(chunk, num_runs)) * min(chunk, num_runs) * 100 * num_steps / filter_s
     return dict(case="study", proposal=config.proposal, R=num_runs, chunk=chunk, P=100, M=64,
                 K=16, T=num_steps, compile_s=compile_s, run_s=filter_s, simulator_s=sim_s,
-                particle_steps_per_s=rate, association_window=association_window,
-                window_cut=window_cut, target=TARGETS["study_particle_steps_per_s"])
+                particle_steps_per_s=rate, **_window_fields(association_window, 64, window_cut),
+                target=TARGETS["study_particle_steps_per_s"])
 
 
 def main(argv=None):

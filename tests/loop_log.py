@@ -7,8 +7,9 @@ from sims.scenario import build_scenario
 
 
 def loop_log(seed: int, num_steps: int, num_trees: int, radius: float, params, max_obs=10):
-    """(controls (T, 3), ``Observations`` (T, K, ...), true poses (T, 3)) of one run: a loop
-    of ``num_steps`` 0.5 m steps with radius ``radius`` [m] around (30, 30), through
+    """(controls (T, 3), ``Observations`` (T, K, ...), true poses (T + 1, 3)) of one run:
+    ``num_steps`` 0.5 m steps along a circle of radius ``radius`` [m] around (30, 30) (a
+    whole loop only when T x 0.5 m reaches its circumference), through
     ``num_trees`` trees drawn in the 60 m square clear of the path, with the noise of
     ``params``; the forest's and the run's keys split from PRNGKey(``seed``)."""
     key_forest, key_run = jax.random.split(jax.random.PRNGKey(seed))
