@@ -83,9 +83,10 @@ def main(argv=None):
                              "'auto' (default) fits it from the log (module docstring), 0 runs "
                              "the log as stamped")
     parser.add_argument("--filter-keys", type=int, default=0,
-                        help="also run the calibrated settings with this many more filter keys "
-                             "(100, 101, ...) and print their median ratio: single runs of "
-                             "one setting vary by up to 2.8x on these robots")
+                        help="also run the calibrated settings (blind, or with --barcodes) "
+                             "with this many more filter keys (100, 101, ...) and print their "
+                             "median ratio (default: 0): single runs of one setting vary by "
+                             "up to 3.2x on these robots")
     parser.add_argument("--filter-particles", type=int, default=None,
                         help="particles of the --filter-keys runs (default: --particles); "
                              "the calibration and the key-0 run keep --particles, so this "
@@ -119,8 +120,10 @@ def main(argv=None):
         if delay != "auto":  # else the pipeline fits it from the log as stamped
             log = mrclam_log(raw, steps, command_delay=delay)
         if args.barcodes != "none":
-            ate, landmarks, info = with_barcodes(log, steps.obs_landmark, config,
-                                                 args.barcodes, args.seed, args.existence_max)
+            keys = range(100, 100 + args.filter_keys)
+            ate, landmarks, info, key_runs = with_barcodes(
+                log, steps.obs_landmark, config, args.barcodes, args.seed, args.existence_max,
+                keys, args.filter_particles)
             rows.append((dr_ate, ate, np.nan, landmarks, np.nan))
             where = args.barcodes.replace('both', 'calibration and run')
             print(f"robot {robot}: T={log.num_steps} | commands {delay:+.3f} s | dead "
@@ -130,6 +133,10 @@ def main(argv=None):
                   f"{info.verdict}", flush=True)
             for line in info.warnings:
                 print("   WARNING:", line)
+            if key_runs:
+                print(keys_summary([dr_ate / key_ate for key_ate, _ in key_runs],
+                                   np.median([kept for _, kept in key_runs]), args.filter_keys,
+                                   args.filter_particles or args.particles), flush=True)
             continue
         run = pipeline.filter_log(log, config, start_params(config, args.existence_max,
                                                             not args.no_calibrate),
@@ -165,19 +172,25 @@ def main(argv=None):
         if args.filter_keys:
             keys_config = dataclasses.replace(
                 config, num_particles=args.filter_particles or args.particles)
-            median, ratios, _, kept = filter_variant(
+            _, ratios, _, kept = filter_variant(
                 run.params, pipeline.log_inputs(log, keys_config), truth, dr_ate,
                 range(100, 100 + args.filter_keys))
-            print(f"   filter keys 100-{99 + args.filter_keys} "
-                  f"(P = {keys_config.num_particles}): dead reckoning / filter ATE "
-                  f"median {median:.2f}x ({' '.join(f'{r:.2f}' for r in ratios)}); "
-                  f"landmarks kept, median {kept:.0f}", flush=True)
+            print(keys_summary(ratios, kept, args.filter_keys, keys_config.num_particles),
+                  flush=True)
     rows = np.asarray(rows)
     smoothed = ("" if args.barcodes != "none"  # the barcode runs are not smoothed
                 else f", smoothed {np.median(rows[:, 2]):.3f} m")
     print(f"median: dead reckoning {np.median(rows[:, 0]):.3f} m, filter "
           f"{np.median(rows[:, 1]):.3f} m{smoothed}; ratio dead reckoning / filter "
           f"{np.median(rows[:, 0] / rows[:, 1]):.2f}; landmarks {np.median(rows[:, 3]):.0f}")
+
+
+def keys_summary(ratios, kept, num_keys: int, particles: int) -> str:
+    """One line on the filter keys 100, 101, ...: the median (and each) dead reckoning /
+    filter ATE ratio, and the median final landmark count ``kept``."""
+    return (f"   filter keys 100-{99 + num_keys} (P = {particles}): dead reckoning / filter "
+            f"ATE median {np.median(ratios):.2f}x ({' '.join(f'{r:.2f}' for r in ratios)}); "
+            f"landmarks kept, median {kept:.0f}")
 
 
 def start_params(config: FilterConfig, existence_max: float | None, calibrate: bool = True):
@@ -191,11 +204,14 @@ def start_params(config: FilterConfig, existence_max: float | None, calibrate: b
 
 
 def with_barcodes(log, obs_landmark, config: FilterConfig, barcodes: str, seed: int,
-                  existence_max: float | None = None):
-    """(filter ATE [m], final landmarks, ``CalibrationInfo``) of one robot's log calibrated
-    with the association known from the barcodes (obs_landmark (T, K), -1 padding), and
-    filtered with it (``barcodes="both"``) or with the config's own association
-    (``"calibration"``). Vicon only scores."""
+                  existence_max: float | None = None, filter_keys=(),
+                  filter_particles: int | None = None):
+    """(filter ATE [m], final landmarks, ``CalibrationInfo``, [(ATE, final landmarks)] of
+    each key in ``filter_keys``) of one robot's log calibrated with the association known
+    from the barcodes (obs_landmark (T, K), -1 padding), and filtered with it
+    (``barcodes="both"``) or with the config's own association (``"calibration"``): key
+    ``seed`` at the config's particles, then the calibrated settings again with each of
+    ``filter_keys`` at ``filter_particles`` (default: the config's). Vicon only scores."""
     config, controls, obs, start = pipeline.log_inputs(log, config)
     obs = obs._replace(landmark_id=jnp.asarray(
         np.where(np.asarray(obs.valid), obs_landmark, -1), jnp.int32))
@@ -203,11 +219,19 @@ def with_barcodes(log, obs_landmark, config: FilterConfig, barcodes: str, seed: 
     key = jax.random.PRNGKey(seed)
     params, info = calibrate_params(known, key, controls, obs, start,
                                     start_params(known, existence_max))
-    _, trace = run_filter(known if barcodes == "both" else config, key, params, controls, obs,
-                          jnp.asarray(start, jnp.float32))
-    ate = float(metrics.ate_rmse(np.asarray(trace.mean_pose, np.float64),
-                                 np.asarray(log.truth_pose)))
-    return ate, int(np.asarray(trace.num_landmarks)[-1]), info
+    run_config = known if barcodes == "both" else config
+
+    def scored(run_config, key):
+        _, trace = run_filter(run_config, key, params, controls, obs,
+                              jnp.asarray(start, jnp.float32))
+        ate = float(metrics.ate_rmse(np.asarray(trace.mean_pose, np.float64),
+                                     np.asarray(log.truth_pose)))
+        return ate, int(np.asarray(trace.num_landmarks)[-1])
+
+    ate, kept = scored(run_config, key)
+    keys_config = dataclasses.replace(
+        run_config, num_particles=filter_particles or run_config.num_particles)
+    return ate, kept, info, [scored(keys_config, jax.random.PRNGKey(k)) for k in filter_keys]
 
 
 if __name__ == "__main__":

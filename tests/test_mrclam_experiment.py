@@ -25,7 +25,7 @@ def test_with_barcodes_calibrates_and_filters_an_exact_log(barcodes, run_associa
         def wrapped(config, *args, **kwargs):
             obs = next(a for a in args if hasattr(a, "landmark_id"))  # the Observations
             seen.append((function.__name__, config.association,
-                         np.asarray(obs.landmark_id).copy()))
+                         np.asarray(obs.landmark_id).copy(), config.num_particles))
             return function(config, *args, **kwargs)
         wrapped.__name__ = function.__name__
         return wrapped
@@ -33,18 +33,28 @@ def test_with_barcodes_calibrates_and_filters_an_exact_log(barcodes, run_associa
     monkeypatch.setattr(experiment, "calibrate_params", recording(experiment.calibrate_params))
     monkeypatch.setattr(experiment, "run_filter", recording(experiment.run_filter))
     config = FilterConfig(num_particles=8, max_landmarks=16)
-    ate, landmarks, info = experiment.with_barcodes(log, ids, config, barcodes, seed=0)
-    assert [(name, association) for name, association, _ in seen] == [
-        ("calibrate_params", "known"), ("run_filter", run_association)]
+    ate, landmarks, info, key_runs = experiment.with_barcodes(
+        log, ids, config, barcodes, seed=0, filter_keys=(100, 101), filter_particles=4)
+    # The calibration, key 0 at the config's 8 particles, then the two keys at 4.
+    assert [(name, association, particles) for name, association, _, particles in seen] == [
+        ("calibrate_params", "known", 8), ("run_filter", run_association, 8),
+        ("run_filter", run_association, 4), ("run_filter", run_association, 4)]
     masked = np.where(log.obs_valid, ids, -1)
-    for _, _, landmark_id in seen:
+    for _, _, landmark_id, _ in seen:
         np.testing.assert_array_equal(landmark_id, masked)
+    assert len(key_runs) == 2 and all(key_ate < 0.1 and kept == 5 for key_ate, kept in key_runs)
     # Exact odometry and observations: whichever association runs, the path stays on the
     # truth (the observations' calibrated floor is centimetres) and the five trees seen are
     # mapped once each.
     assert ate < 0.1
     assert landmarks == 5
     assert info.iterations >= 1 and info.verdict
+
+
+def test_keys_summary_gives_the_median_and_each_ratio():
+    line = experiment.keys_summary([2.0, 4.0, 3.0], 14, 3, 1000)
+    assert line == ("   filter keys 100-102 (P = 1000): dead reckoning / filter ATE median "
+                    "3.00x (2.00 4.00 3.00); landmarks kept, median 14")
 
 
 def test_barcodes_refuse_the_options_they_do_not_run(capsys):
