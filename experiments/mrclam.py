@@ -86,7 +86,8 @@ def main(argv=None):
                         help="also run the calibrated settings (blind, or with --barcodes) "
                              "with this many more filter keys (100, 101, ...) and print their "
                              "median ratio (default: 0): single runs of one setting vary by "
-                             "up to 3.2x on these robots")
+                             "up to 3.2x on these robots at the default settings, more with "
+                             "--barcodes or without the existence cap")
     parser.add_argument("--filter-particles", type=int, default=None,
                         help="particles of the --filter-keys runs (default: --particles); "
                              "the calibration and the key-0 run keep --particles, so this "

@@ -264,9 +264,9 @@ def filter_log(log, config: FilterConfig, params: Params | None = None, key=None
         with ``calibrate=False``, where the run itself then uses ``default_params``);
         ``LogRun.delay_fit`` holds that fit and the metrics gain ``command_delay`` [s].
       settings_calibrated: whether the sensor noise the run uses was calibrated, for the
-        warnings' advice (``run_warnings``' ``calibrated``): True for settings a calibration
-        saved and the caller reuses; None (default): whether this call's calibration fitted
-        it (``sensor_noise_calibrated``).
+        warnings' advice (``run_warnings``' ``calibrated``): True for reused settings whose
+        calibration fitted it (``saved_sensor_calibration``); None (default): whether this
+        call's calibration fitted it (``sensor_noise_calibrated``).
       progress: optional callable(str) told of each stage.
     """
     check_offline_options(smooth, visit_gap, close_loops, smooth_rounds)
@@ -401,18 +401,36 @@ def params_to_dict(params: Params) -> dict:
     return out
 
 
-def save_params(path, params: Params, comment: str | None = None) -> pathlib.Path:
-    """Write ``params`` as a TOML table ``[params]`` (``load_params`` reads it back)."""
+def save_params(path, params: Params, comment: str | None = None,
+                sensor_noise_calibrated: bool | None = None) -> pathlib.Path:
+    """Write ``params`` as a TOML table ``[params]`` (``load_params`` reads it back), and
+    with ``sensor_noise_calibrated`` given a table ``[calibration]`` saying whether a fit
+    of the sensor noise lies behind them (``saved_sensor_calibration`` reads it)."""
     import tomli_w
 
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = tomli_w.dumps({"params": params_to_dict(params)})
+    tables = {"params": params_to_dict(params)}
+    if sensor_noise_calibrated is not None:
+        tables["calibration"] = {"sensor_noise": bool(sensor_noise_calibrated)}
+    text = tomli_w.dumps(tables)
     header = "".join(f"# {line}\n" for line in (comment or "").splitlines())
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(header + text)
     tmp.replace(path)
     return path
+
+
+def saved_sensor_calibration(path) -> bool:
+    """Whether the params file at ``path`` says a sensor-noise fit lies behind it (the
+    ``[calibration]`` table ``save_params`` writes for a calibration); False for a file
+    without one (written by hand, or before the table existed) or that cannot be read."""
+    try:
+        data = tomllib.loads(pathlib.Path(path).read_text())
+    except (OSError, tomllib.TOMLDecodeError):
+        return False
+    table = data.get("calibration")
+    return isinstance(table, dict) and table.get("sensor_noise") is True
 
 
 def load_params(path, config: FilterConfig | None = None) -> Params:

@@ -450,8 +450,13 @@ def test_run_calibrates_a_user_log_by_default(tmp_path, monkeypatch, capsys):
     status, _, defaults = _run_noisy(tmp_path, monkeypatch, capsys, "--no-calibrate",
                                      "--set", "filter.num_particles=48")
     assert status == 0 and defaults["ate_rmse"] != larger["ate_rmse"]
-    # calibrated, given by hand, reused twice, defaults
-    assert told == [True, False, True, True, False]
+    # A params file written by hand (no [calibration] table) is not taken as calibrated.
+    by_hand = tmp_path / "by_hand.toml"
+    by_hand.write_text("[params]\nrange_noise = [0.0, 0.05]\n")
+    status, _, _ = _run_noisy(tmp_path, monkeypatch, capsys, "--params", str(by_hand))
+    assert status == 0
+    # calibrated, given by hand, reused twice, defaults, a hand-written file
+    assert told == [True, False, True, True, False, False]
 
 
 def test_defaults_on_a_user_log_warn_in_plain_words(tmp_path, monkeypatch, capsys):

@@ -25,7 +25,8 @@ def test_with_barcodes_calibrates_and_filters_an_exact_log(barcodes, run_associa
         def wrapped(config, *args, **kwargs):
             obs = next(a for a in args if hasattr(a, "landmark_id"))  # the Observations
             seen.append((function.__name__, config.association,
-                         np.asarray(obs.landmark_id).copy(), config.num_particles))
+                         np.asarray(obs.landmark_id).copy(), config.num_particles,
+                         int(np.asarray(args[0])[-1])))  # PRNGKey(k)'s last word is k
             return function(config, *args, **kwargs)
         wrapped.__name__ = function.__name__
         return wrapped
@@ -35,12 +36,13 @@ def test_with_barcodes_calibrates_and_filters_an_exact_log(barcodes, run_associa
     config = FilterConfig(num_particles=8, max_landmarks=16)
     ate, landmarks, info, key_runs = experiment.with_barcodes(
         log, ids, config, barcodes, seed=0, filter_keys=(100, 101), filter_particles=4)
-    # The calibration, key 0 at the config's 8 particles, then the two keys at 4.
-    assert [(name, association, particles) for name, association, _, particles in seen] == [
-        ("calibrate_params", "known", 8), ("run_filter", run_association, 8),
-        ("run_filter", run_association, 4), ("run_filter", run_association, 4)]
+    # The calibration and key 0 at the config's 8 particles, then keys 100 and 101 at 4.
+    assert [(name, association, particles, key)
+            for name, association, _, particles, key in seen] == [
+        ("calibrate_params", "known", 8, 0), ("run_filter", run_association, 8, 0),
+        ("run_filter", run_association, 4, 100), ("run_filter", run_association, 4, 101)]
     masked = np.where(log.obs_valid, ids, -1)
-    for _, _, landmark_id, _ in seen:
+    for _, _, landmark_id, _, _ in seen:
         np.testing.assert_array_equal(landmark_id, masked)
     assert len(key_runs) == 2 and all(key_ate < 0.1 and kept == 5 for key_ate, kept in key_runs)
     # Exact odometry and observations: whichever association runs, the path stays on the

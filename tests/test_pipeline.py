@@ -105,7 +105,21 @@ def test_sensor_noise_calibrated_needs_a_sensor_fit_behind_the_settings():
     assert not pipeline.sensor_noise_calibrated(None)
     assert not pipeline.sensor_noise_calibrated(info(samples={}))
     assert not pipeline.sensor_noise_calibrated(info(samples={"heading": 200}))
+    assert not pipeline.sensor_noise_calibrated(info(samples={"radius": 40}))  # radius alone
     assert pipeline.sensor_noise_calibrated(info(samples={"range": 90, "bearing": 90}))
+
+
+@pytest.mark.parametrize("marker, want", [(True, True), (False, False), (None, False)])
+def test_a_params_file_says_whether_a_sensor_fit_lies_behind_it(tmp_path, marker, want):
+    """``save_params``' [calibration] table round-trips; a file without it (by hand, or
+    older), or one that cannot be read, counts as not calibrated; the [params] still load."""
+    path = pipeline.save_params(tmp_path / "p.toml", default_params(max_range=9.0),
+                                sensor_noise_calibrated=marker)
+    assert pipeline.saved_sensor_calibration(path) is want
+    assert float(pipeline.load_params(path).max_range) == 9.0
+    assert pipeline.saved_sensor_calibration(tmp_path / "missing.toml") is False
+    (tmp_path / "bad.toml").write_text("[calibration\n")
+    assert pipeline.saved_sensor_calibration(tmp_path / "bad.toml") is False
 
 
 def _spy_on_warnings(monkeypatch):

@@ -41,9 +41,11 @@ def test_tiny_study_row_with_a_window_reports_what_the_window_cut(load_benchmark
                               "--chunk", "2", "--steps", "5", "--association-window", "2"])
     assert (row["case"], row["association_window"], row["R"], row["T"]) == ("study", 2, 2, 5)
     assert row["window_cut"] > 0
-    (plain,) = throughput.main(["--proposal", "motion", "--cases", "study", "--runs", "2",
-                                "--chunk", "2", "--steps", "5"])
-    assert plain["association_window"] == 0 and plain["window_cut"] is None
+    for window in ("0", "64"):  # no window, or one of all M = 64 slots: none applied
+        (plain,) = throughput.main(["--proposal", "motion", "--cases", "study", "--runs", "2",
+                                    "--chunk", "2", "--steps", "5", "--association-window",
+                                    window])
+        assert plain["association_window"] == 0 and plain["window_cut"] is None
     assert math.isclose(row["particle_steps_per_s"], 2 * 100 * 5 / row["run_s"])
 
 

@@ -163,7 +163,9 @@ def _run_log(args) -> int:
         saved = pipeline.save_params(out / "calibrated_params.toml", run.params,
                                      comment=f"calibrated from {args.data} by jaxslam run "
                                      f"({run.calibration.verdict})"
-                                     + _delay_note(run.metrics.get("command_delay")))
+                                     + _delay_note(run.metrics.get("command_delay")),
+                                     sensor_noise_calibrated=pipeline.sensor_noise_calibrated(
+                                         run.calibration))
         print(f"wrote {saved} (reuse it with --params {saved})")
     _print_metrics(run.metrics)
     _print_warnings(run.warnings)
@@ -304,9 +306,11 @@ def _filter_log(args, log):
     options = _calibration_options(args)  # checked before the lag's fit
     log, delay = _apply_command_delay(args, log)
     study, filter_config, params, calibrate = _log_settings(args, log)
-    # A --params file is a saved calibration (``jaxslam calibrate --out``): the warnings
-    # then do not advise calibrating again.
-    reused = getattr(args, "params", None) is not None
+    # A --params file that a calibration saved with its sensor noise fitted: the warnings
+    # then do not advise calibrating again (a hand-written file, or one whose calibration
+    # fitted no sensor noise, still gets that advice).
+    params_file = getattr(args, "params", None)
+    reused = params_file is not None and pipeline.saved_sensor_calibration(params_file)
     run = pipeline.filter_log(log, filter_config, params, jax.random.PRNGKey(args.seed),
                               calibrate=calibrate, smooth=smooth, visit_gap=visit_gap,
                               close_loops=close, settings_calibrated=True if reused else None,
@@ -373,7 +377,8 @@ def cmd_calibrate(args) -> int:
     _print_calibration(info)
     _print_warnings(info.warnings)
     saved = pipeline.save_params(args.out, params, comment=f"calibrated from {args.data} by "
-                                 f"jaxslam calibrate ({info.verdict})" + _delay_note(delay))
+                                 f"jaxslam calibrate ({info.verdict})" + _delay_note(delay),
+                                 sensor_noise_calibrated=pipeline.sensor_noise_calibrated(info))
     again = "" if delay is None else f" --command-delay {delay:.3f}"
     print(f"wrote {saved} (use it with: jaxslam run --data {args.data} --params {saved}"
           f"{again})")
