@@ -21,10 +21,9 @@ Cases, each timed as compile time and run time apart (after ``block_until_ready`
 
 With ``--association-window N`` (any case) each particle matches against its N nearest
 landmarks only. N of at least the case's M slots is no window, and its rows say window 0.
-A windowed row gives the window cut, the most
-landmarks that could have taken part but fell outside the window in any step of any run
-(``StepInfo.window_cut``): 0 means the runs are the full association's, so the speed is the
-same filter's.
+A windowed row gives the window cut, the most landmarks that could have taken part but fell
+outside the window in any step of any run (``StepInfo.window_cut``): 0 means the runs are
+the full association's, so the speed is the same filter's.
 
 Ratios are PythonRobotics' 27.4 ms over jaxslam's time a (run-)step; the issue's targets are
 >= 200x (single), >= 1000x (batched) and >= 200 k particle-steps/s (study).
