@@ -204,6 +204,21 @@ def start_params(config: FilterConfig, existence_max: float | None, calibrate: b
                                                               existence_max=existence_max)
 
 
+def barcode_calibration(log, obs_landmark, config: FilterConfig, seed: int,
+                        existence_max: float | None = None):
+    """(config sized to the log, the same with ``association="known"``, Params, the
+    ``CalibrationInfo``, (controls, observations with the barcodes as ids, start)): one
+    robot's log calibrated with key ``seed`` and the association known from the barcodes
+    (obs_landmark (T, K), -1 padding; -1 on invalid rows too)."""
+    config, controls, obs, start = pipeline.log_inputs(log, config)
+    obs = obs._replace(landmark_id=jnp.asarray(
+        np.where(np.asarray(obs.valid), obs_landmark, -1), jnp.int32))
+    known = dataclasses.replace(config, association="known")
+    params, info = calibrate_params(known, jax.random.PRNGKey(seed), controls, obs, start,
+                                    start_params(known, existence_max))
+    return config, known, params, info, (controls, obs, start)
+
+
 def with_barcodes(log, obs_landmark, config: FilterConfig, barcodes: str, seed: int,
                   existence_max: float | None = None, filter_keys=(),
                   filter_particles: int | None = None):
@@ -213,13 +228,9 @@ def with_barcodes(log, obs_landmark, config: FilterConfig, barcodes: str, seed: 
     (``barcodes="both"``) or with the config's own association (``"calibration"``): key
     ``seed`` at the config's particles, then the calibrated settings again with each of
     ``filter_keys`` at ``filter_particles`` (default: the config's). Vicon only scores."""
-    config, controls, obs, start = pipeline.log_inputs(log, config)
-    obs = obs._replace(landmark_id=jnp.asarray(
-        np.where(np.asarray(obs.valid), obs_landmark, -1), jnp.int32))
-    known = dataclasses.replace(config, association="known")
+    config, known, params, info, (controls, obs, start) = barcode_calibration(
+        log, obs_landmark, config, seed, existence_max)
     key = jax.random.PRNGKey(seed)
-    params, info = calibrate_params(known, key, controls, obs, start,
-                                    start_params(known, existence_max))
     run_config = known if barcodes == "both" else config
 
     def scored(run_config, key):
