@@ -59,8 +59,9 @@ from jaxslam import ekf, lineage, smoothing
 from jaxslam.calibration_residuals import NOISE_GROUPS, typical_stds
 from jaxslam.filter import estimate, run_filter
 from jaxslam.geometry import range_bearing, wrap_angle
+from jaxslam.host import in_float64
 from jaxslam.motion import (burst_variance_factor, nearest_decomposition, odometry_from_poses,
-                            sample_odometry)
+                            sample_odometry, with_gain)
 from jaxslam.noise_scale import scaled_noise
 from jaxslam.types import FilterConfig, Observations, Params, default_params
 
@@ -137,8 +138,9 @@ def log_solution(config: FilterConfig, key, params: Params, controls, observatio
                               jnp.asarray(start, jnp.float32), record_lineage=True)
     history = jax.tree.map(np.asarray, lineage.trace_lineage(
         trace.lineage, estimate(final).best_particle))
+    measured = in_float64(with_gain, controls, params.odometry_gain)  # the odometry model's
     try:
-        smoothed = smoothing.smooth_lineage(start, history, np.asarray(controls, np.float64),
+        smoothed = smoothing.smooth_lineage(start, history, measured,
                                             np.asarray(observations.z), params,
                                             calibrate_rounds=smoothing.VARIANCE_ROUNDS)
     except SMOOTHING_ERRORS as error:
@@ -147,7 +149,7 @@ def log_solution(config: FilterConfig, key, params: Params, controls, observatio
                            f"around") from error
     return Solution(np.asarray(smoothed.path, np.float64), start,
                     np.asarray(smoothed.landmark, np.float64),
-                    np.asarray(smoothed.landmark_of_obs), np.asarray(controls, np.float64))
+                    np.asarray(smoothed.landmark_of_obs), measured)
 
 
 def replicate_log(key, solution: Solution, params: Params, observations: Observations,
@@ -167,7 +169,8 @@ def replicate_log(key, solution: Solution, params: Params, observations: Observa
     moves = nearest_decomposition(  # (T, 3), written as the log's measured moves are
         odometry_from_poses(poses[:-1], poses[1:], noise.min_translation),
         jnp.asarray(solution.measured, dtype))
-    controls = sample_odometry(key_motion, moves, noise)
+    # The replicate's readings: its measured moves over the gains (``motion.with_gain``).
+    controls = with_gain(sample_odometry(key_motion, moves, noise), 1.0 / noise.odometry_gain)
     ids = solution.landmark_of_obs
     points = jnp.asarray(solution.landmark[np.clip(ids, 0, None)] if len(solution.landmark)
                          else np.zeros(ids.shape + (2,)), dtype)  # (T, K, 2)
@@ -192,7 +195,8 @@ def replicate_truth(noise: Params, bursts: bool, controls, observations: Observa
     (what ``total_typical_std`` estimates)."""
     z = np.asarray(observations.z, np.float64)
     valid = np.asarray(observations.valid, bool) & np.all(np.isfinite(z), axis=-1)
-    tau = np.asarray(typical_stds(noise, np.asarray(controls, np.float64), z[valid][:, 0]))
+    measured = in_float64(with_gain, controls, noise.odometry_gain)
+    tau = np.asarray(typical_stds(noise, measured, z[valid][:, 0]))
     factor = float(np.sqrt(burst_variance_factor(noise))) if bursts else 1.0
     return tau * np.array([factor, factor, 1.0, 1.0])
 

@@ -31,6 +31,7 @@ CONFIG_UNITS = {
     "params.rot1_noise": "rad/m, rad/rad, rad", "params.trans_noise": "m/m, m/rad, m",
     "params.rot2_noise": "rad/m, rad/rad, rad", "params.motion_outlier_probability": "probability",
     "params.motion_outlier_scale": _NONE, "params.min_translation": "m",
+    "params.odometry_gain": "-, -",
     "params.wheelbase": "m", "params.encoder_offset": "m", "params.laser_forward": "m",
     "params.laser_left": "m", "params.range_noise": "m/m, m",
     "params.bearing_noise": "rad/m, rad", "params.range_std_floor": "m",

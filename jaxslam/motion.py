@@ -27,6 +27,18 @@ The velocity (v, omega, dt) and Ackermann (v_encoder, steering, dt) controls are
 exactly (constant rates over dt) into a relative pose, decomposed into (rot1, trans, rot2), and
 the same Eq. (1) noise is applied. So all three share one sampler and one density.
 
+Systematic error: odometry that reads every move too long or every turn too wide is wrong in
+a way no zero-mean noise describes: the error adds up along the drive instead of averaging
+out (Borenstein and Feng, "Measurement and correction of systematic odometry errors in mobile
+robots", IEEE Transactions on Robotics and Automation, 1996). The measured move every model
+uses is the reading times the gains g = ``params.odometry_gain`` = (g_t, g_r),
+
+    u = (g_r rot1_read, g_t trans_read, g_r rot2_read),
+
+and Eq. (1)'s noise is around u, with its std evaluated at u (``control_to_odometry``, the one
+place a reading becomes a move). g = (1, 1) (the default) leaves every reading as it is, bit
+for bit; ``calibrate_params`` fits g from the log (``odometry_gain.gain_update``).
+
 Shapes: ``pose`` (..., 3), ``control`` (..., 3), ``odometry`` (..., 3) = (rot1, trans, rot2).
 """
 from __future__ import annotations
@@ -173,17 +185,27 @@ def ackermann_delta(control, params: Params):
     return compose(compose(relative(offset, jnp.zeros_like(offset)), arc), offset)
 
 
+def with_gain(odometry, gain):
+    """The reading ``odometry`` (..., 3) = (rot1, trans, rot2) times the gains ``gain`` (2,)
+    = (g_t, g_r): (g_r rot1, g_t trans, g_r rot2) (module docstring, systematic error)."""
+    gain = jnp.asarray(gain, odometry.dtype)
+    factor = jnp.stack([gain[..., 1], gain[..., 0], gain[..., 1]], axis=-1)
+    return odometry * jnp.broadcast_to(factor, odometry.shape)
+
+
 def control_to_odometry(control, params: Params, motion_model: str):
-    """The measured move (rot1, trans, rot2) (..., 3) of a control of the given model."""
+    """The measured move (rot1, trans, rot2) (..., 3) of a control of the given model: its
+    reading (the control itself for the odometry model, else the integrated move's
+    decomposition) times ``params.odometry_gain`` (``with_gain``)."""
     if motion_model == "odometry":
-        return control
-    if motion_model == "velocity":
-        delta = arc_delta(control[..., 0], control[..., 1], control[..., 2])
-    elif motion_model == "ackermann":
-        delta = ackermann_delta(control, params)
+        reading = control
+    elif motion_model in ("velocity", "ackermann"):
+        delta = (arc_delta(control[..., 0], control[..., 1], control[..., 2])
+                 if motion_model == "velocity" else ackermann_delta(control, params))
+        reading = odometry_from_relative(delta, params.min_translation)
     else:
         raise ValueError(f"motion_model={motion_model!r}; expected one of {list(MOTION_MODELS)}")
-    return odometry_from_relative(delta, params.min_translation)
+    return with_gain(reading, params.odometry_gain)
 
 
 def sample_motion(key, pose, control, params: Params, motion_model: str = "odometry"):

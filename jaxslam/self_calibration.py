@@ -36,6 +36,10 @@ estimation use, with the particle filter as the E-step's data associator:
            fitted to an association the radius did not shape (a std fitted inside the
            loop narrows itself: a tight std splits a tree, and each piece's radii scatter
            less than the whole tree's);
+         * ``odometry_gain`` (with the motion noise, unless ``calibrate_gain=False``): the
+           odometry's systematic error, a robust slope of the smoothed moves on the measured
+           ones, kept where BIC calls for it (``odometry_gain``); the next iteration's moves
+           are the readings times the new gains;
          * ``association_heading_std`` (with the motion noise): the root-mean-square heading
            std that the fitted Eq. (1) gives over the log's own moves
            (``calibration_residuals.typical_stds``). It stands for a heading error of a
@@ -124,6 +128,7 @@ from jaxslam.calibration_residuals import NOISE_GROUPS, smoothed_residuals, typi
 from jaxslam.detection_fit import gate_with_radius, sensor_update, single_share
 from jaxslam.filter import run_filter
 from jaxslam.landmark_merge import merge_split_landmarks, relabel
+from jaxslam.odometry_gain import GainFit, gain_update
 from jaxslam.motion import control_to_odometry
 from jaxslam.noise_scale import (DEFAULT_SCALES, MOTION_FIELDS, OBSERVATION_FIELDS, ScaleSearch,
                                  any_fair, check_scales, check_workers, describe_search,
@@ -368,6 +373,7 @@ class _MStep(NamedTuple):
     radius: dict | None = None  # {"radius_noise": std}, applied after EM (``_with_radius``)
     radius_used: int = 0  # measured radii of landmarks with ``MIN_SIGHTINGS`` of them
     radius_relative_std: float = float("inf")  # ``noise_fit.radius_noise_relative_error``
+    gain: GainFit | None = None  # the odometry gains' fit (``odometry_gain``), when asked
 
 
 def _merged(smoothed: smoothing.Smoothed, smooth) -> smoothing.Smoothed:
@@ -406,13 +412,16 @@ def _radius_update(log: _Log, landmark_of_obs) -> tuple[dict, int, float]:
 
 def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, iteration: int,
             calibrate_sensor: bool, smoother_iterations: int,
-            merge_landmarks: bool = False, calibrate_radius: bool = False) -> _MStep | str:
+            merge_landmarks: bool = False, calibrate_radius: bool = False,
+            calibrate_gain: bool = False) -> _MStep | str:
     """Smooth the best particle's association and fit the settings (module docstring, 3-4);
     a warning instead when there is nothing to fit or the smoother failed. With
     ``merge_landmarks`` the smoothed map's split landmarks are merged and the log smoothed
     again with the merged association before the fit (``landmark_merge``). With
     ``calibrate_radius`` also the trunk-radius std (``_radius_update``), kept apart: EM's
-    runs match without it (``_with_radius`` applies it after EM)."""
+    runs match without it (``_with_radius`` applies it after EM). With ``calibrate_gain``
+    also ``odometry_gain`` (``odometry_gain.gain_update``) from the same residuals as the
+    motion noise, which is fitted around the moves of this iteration's gains."""
     ids = history_associations(history, log.valid)
     false_alarms = single_share(ids)
     ids = confirmed_ids(ids)
@@ -443,6 +452,11 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
         (rot1, trans, rot2), eps, kappa, bursts_fitted = motion
         update.update(rot1_noise=rot1, trans_noise=trans, rot2_noise=rot2,
                       motion_outlier_probability=eps, motion_outlier_scale=kappa)
+    gain = None
+    if calibrate_gain and motion is not None:
+        gain = gain_update(params.odometry_gain, res.measured_moves + res.move_error,
+                           res.measured_moves)
+        update["odometry_gain"] = gain.gain
     obs = observation_noise_update(res, smoothed.noise_scales, used)
     if obs is not None:
         update.update(range_noise=obs[0], bearing_noise=obs[1],
@@ -462,7 +476,7 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
                   obs is not None, int(used.sum()),
                   group_relative_errors(res, used, motion is not None, obs is not None,
                                         smoothed.degrees_of_freedom),
-                  bursts_fitted, radius or None, radius_used, radius_error)
+                  bursts_fitted, radius or None, radius_used, radius_error, gain)
 
 
 LOOSE_INTERVAL = 0.5  # a noise group's stated 95 % half-width (relative) above which it is named
@@ -703,7 +717,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                      initial_pose=None, params: Params | None = None, *,
                      motion_model: str | None = None, iterations: int = 5, tol: float = 0.05,
                      calibrate_sensor: bool = True, calibrate_radius: bool = True,
-                     smoother_iterations: int = 15,
+                     calibrate_gain: bool = True, smoother_iterations: int = 15,
                      merge_landmarks: bool = False, scale_search: bool = True,
                      scales=DEFAULT_SCALES, patience: int | None = 2,
                      search_workers: int | None = None,
@@ -746,6 +760,9 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         returned settings match on a radius (std > 0) and the calibration fitted the gate,
         the gate is the 3-dof gate of ``detection_fit.gate_with_radius``; with
         ``calibrate_sensor=False`` the given gate is kept as it is.
+      calibrate_gain: also estimate ``odometry_gain``, the odometry's systematic error
+        (``odometry_gain``: each M-step's least-squares slope of the smoothed moves on the
+        measured ones, kept only where BIC calls for it). False: the given gains are kept.
       smoother_iterations: most Levenberg-Marquardt steps of each smoothing.
       merge_landmarks: in each M-step, merge the smoothed landmarks that were never observed
         at one step and lie closer than half the distance of any two that were
@@ -825,7 +842,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
             break
         step = _m_step(config, params, log, odometry,
                        best_history(trace.lineage, final.log_weight), done, calibrate_sensor,
-                       smoother_iterations, merge_landmarks, fit_radius)
+                       smoother_iterations, merge_landmarks, fit_radius, calibrate_gain)
         if isinstance(step, str):
             warnings.append(step)
             break
@@ -839,7 +856,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         if step.motion_fitted:
             values["association_heading_std"] = _plain(params.association_heading_std)
         new_typical = typical_stds(params, odometry, z_range)
-        change = np.max(np.abs(new_typical / typical[-1] - 1.0))
+        change = max(np.max(np.abs(new_typical / typical[-1] - 1.0)),
+                     step.gain.change if step.gain is not None else 0.0)
         if progress is not None:
             progress(_progress_line(done, objective[-1], new_typical, change, dropped[-1],
                                     fill_steps[-1],
@@ -895,6 +913,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     if not any(step.motion_fitted for step in m_steps[:behind]):
         params = params._replace(association_heading_std=given_heading_std)
         values.pop("association_heading_std", None)
+    # The returned settings' typical stds over their own moves (the readings times their gains).
+    odometry = np.asarray(control_to_odometry(controls, params, motion_model), np.float64)
     typical.append(typical_stds(params, odometry, z_range))
     # The radius warning speaks of the M-step behind the returned settings (else the last).
     warnings += _fit_warnings(last, steps, (source or last) if fit_radius else None,

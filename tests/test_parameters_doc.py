@@ -31,7 +31,7 @@ CALIBRATED = {
     "motion_outlier_scale", "range_noise", "bearing_noise", "range_std_floor",
     "bearing_std_floor", "max_range", "miss_range", "miss_bearing", "detection_probability",
     "false_alarm_probability", "association_gate", "airlock_sigmas", "association_heading_std",
-    "radius_noise",
+    "radius_noise", "odometry_gain",
 }
 
 HEADER = ["Field", "Unit", "Default", "Read when", "Enters", "Estimate from"]

@@ -15,7 +15,8 @@ from jaxslam.calibration_residuals import smoothed_residuals, typical_stds
 from jaxslam.detection_fit import CHI2_2DOF_999, GATE_LIMITS, detections, gate_with_radius
 from jaxslam.ekf import measurement_std
 from jaxslam.geometry import range_bearing, wrap_angle
-from jaxslam.motion import nearest_decomposition, odometry_from_poses, odometry_std
+from jaxslam.motion import (control_to_odometry, nearest_decomposition, odometry_from_poses,
+                            odometry_std)
 from jaxslam.noise_fit import (host_motion_fit, host_observation_fit,
                                radius_noise_from_history,
                                radius_noise_relative_error, rescale)
@@ -51,9 +52,11 @@ def test_recovers_the_noise_groups_within_stated_intervals():
     z_range = np.asarray(obs.z)[np.asarray(obs.valid)][:, 0]
     odometry = np.asarray(controls, np.float64)
     truth = typical_stds(_true_params(), odometry, z_range)
-    # EM's own estimate (the search's multipliers divided out): what ``relative_std`` states.
+    # EM's own estimate (the search's multipliers divided out): what ``relative_std`` states,
+    # over the returned settings' own moves (the readings times their fitted gains).
     fitted = sc.em_typical_std(info)
-    np.testing.assert_allclose(fitted, typical_stds(params, odometry, z_range)
+    own_moves = np.asarray(control_to_odometry(controls, params, "odometry"), np.float64)
+    np.testing.assert_allclose(fitted, typical_stds(params, own_moves, z_range)
                                / sc.group_scales(info), rtol=1e-9)
     # Tolerance: 1/sqrt(2 n) is 5 % for the 200 moves and under 2 % for the ~1,700
     # observations; the rot1/rot2 split and the Eq. (1) shape are fitted on 16 and 6 groups,

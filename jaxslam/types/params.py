@@ -30,6 +30,12 @@ class Params(NamedTuple):
       min_translation: below this translation [m] the move is a pure turn: rot1 = 0 and the
         whole heading change goes to rot2 (avoids the rot1 degeneracy of a stationary robot).
         Default 1 cm: above typical pose jitter of a parked robot (millimetres).
+      odometry_gain: (2,) (translation gain, rotation gain) [-]: the systematic part of the
+        odometry error (Borenstein and Feng, "Measurement and correction of systematic
+        odometry errors in mobile robots", 1996). The move the models use is the reading's
+        (g_r rot1, g_t trans, g_r rot2) (``motion.control_to_odometry``); Eq. (1)'s noise
+        is then around that move. A robot that drives 9 % less than commanded has g_t
+        0.91. Default (1, 1): the reading as it is.
       The velocity and Ackermann models integrate their control into the same
       (rot1, trans, rot2) move and reuse these coefficients (see ``motion.py``).
       wheelbase / encoder_offset / laser_forward / laser_left: Ackermann vehicle geometry [m]
@@ -105,6 +111,7 @@ class Params(NamedTuple):
     motion_outlier_probability: jnp.ndarray
     motion_outlier_scale: jnp.ndarray
     min_translation: jnp.ndarray
+    odometry_gain: jnp.ndarray
     wheelbase: jnp.ndarray
     encoder_offset: jnp.ndarray
     laser_forward: jnp.ndarray
@@ -145,6 +152,8 @@ PARAM_DEFAULTS = {
     "motion_outlier_probability": 0.05,
     "motion_outlier_scale": 8.0,
     "min_translation": 0.01,
+    # Systematic odometry error (translation, rotation gain): none.
+    "odometry_gain": (1.0, 1.0),
     # Ackermann vehicle geometry (Victoria Park).
     "wheelbase": 2.83,
     "encoder_offset": 0.76,

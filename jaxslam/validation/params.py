@@ -16,7 +16,7 @@ from jaxslam.validation.inputs import is_tracer
 # Trailing shape of every Params field (leading batch axes allowed for stacked sweeps).
 _VECTOR_SHAPES = {
     "rot1_noise": (3,), "trans_noise": (3,), "rot2_noise": (3,),
-    "range_noise": (2,), "bearing_noise": (2,),
+    "range_noise": (2,), "bearing_noise": (2,), "odometry_gain": (2,),
 }
 FIELD_SHAPES = {name: _VECTOR_SHAPES.get(name, ()) for name in Params._fields}
 _SHAPE_MEANING = {
@@ -25,6 +25,7 @@ _SHAPE_MEANING = {
     "rot2_noise": "coefficients (trans, rot, const)",
     "range_noise": "coefficients (per metre, const)",
     "bearing_noise": "coefficients (per metre, const)",
+    "odometry_gain": "gains (translation, rotation)",
 }
 
 # Per-field rules: (kind, expectation text). Kinds: "nonneg" (finite, >= 0), "positive"
@@ -35,6 +36,7 @@ _RULES = {
     "motion_outlier_probability": "unit_open_high",
     "motion_outlier_scale": "positive",
     "min_translation": "positive",
+    "odometry_gain": "positive",
     "wheelbase": "positive",
     "encoder_offset": "finite", "laser_forward": "finite", "laser_left": "finite",
     "range_noise": "nonneg", "bearing_noise": "nonneg",
