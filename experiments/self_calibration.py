@@ -45,6 +45,7 @@ from jaxslam.calibration_bootstrap import bootstrap_intervals, burst_rms_factor
 from jaxslam.calibration_residuals import NOISE_GROUPS, typical_stds
 from jaxslam.datasets.odometry import odometry_path
 from jaxslam.filter import estimate, run_filter
+from jaxslam.motion import with_gain
 from jaxslam.pipeline import offline_path
 from jaxslam.self_calibration import (calibrate_params, em_typical_std,
                                       group_scales, starting_params)
@@ -78,6 +79,15 @@ def true_params(odometry_scale: float, sensor_scale: float):
         range_noise=(0.005 * sensor_scale, 0.002 * sensor_scale),
         bearing_noise=(0.0005 * sensor_scale, 0.0002 * sensor_scale),
         range_std_floor=1e-4, bearing_std_floor=1e-5, max_range=MAX_RANGE)
+
+
+def read_with_gain(controls, gain):
+    """The log's measured moves (T, 3) as an odometry with gains ``gain`` = (g_t, g_r) reads
+    them: divided by the gains (``motion.with_gain`` of the readings gives them back). The
+    gains (1, 1) return ``controls`` itself."""
+    if tuple(gain) == (1.0, 1.0):
+        return controls
+    return with_gain(jnp.asarray(controls), 1.0 / jnp.asarray(gain, jnp.float32))
 
 
 def make_log(key, params, wobble: float = 0.3):
@@ -300,6 +310,15 @@ def main(argv=None):
     parser.add_argument("--wobble", type=float, default=0.3,
                         help="lateral wobble amplitude [m]; 0.3 turns up to ~0.15 rad a step, "
                         "0 is a smooth circle (0.025 rad a step)")
+    parser.add_argument("--odometry-gain", type=float, nargs=2, default=(1.0, 1.0),
+                        metavar=("G_T", "G_R"),
+                        help="the robot drives G_T times and turns G_R times what its odometry "
+                             "reads: each log's moves are read divided by these gains (the "
+                             "true-noise filter is given them) (default: 1 1: no systematic "
+                             "error)")
+    parser.add_argument("--no-gain", action="store_true",
+                        help="calibrate without fitting the odometry's gains "
+                             "(calibrate_gain=False) (default: off: fit them)")
     parser.add_argument("--bootstrap", type=int, default=0, metavar="B",
                         help="also state each noise group's parametric-bootstrap interval "
                         "from B replicate calibrations (calibration_bootstrap; B >= 2, about "
@@ -311,30 +330,36 @@ def main(argv=None):
     args = parser.parse_args(argv)
     config = FilterConfig(num_particles=args.particles, max_landmarks=96, max_obs=12,
                           proposal=args.proposal)
-    truth_params = true_params(args.odometry_scale, args.sensor_scale)
+    truth_params = true_params(args.odometry_scale, args.sensor_scale)._replace(
+        odometry_gain=jnp.asarray(args.odometry_gain, jnp.float32))
     rows, recovered, offline, booted = [], [], [], []
     for run in range(args.runs):
         key = jax.random.fold_in(jax.random.PRNGKey(args.seed), run)
         key_log, key_filter = jax.random.split(key)
         controls, obs, truth, trees = make_log(key_log, truth_params, args.wobble)
+        controls = read_with_gain(controls, args.odometry_gain)
         dr = odometry_path(np.asarray(controls), np.asarray(truth[0]))
         dr_error = float(np.hypot(*(dr[-1, :2] - np.asarray(truth[-1, :2]))))
         true_error, true_map, seen, _, true_offline = score(
             config, key_filter, truth_params, controls, obs, truth, trees, args.offline)
         start = time.perf_counter()
         calibrated, info = calibrate_params(config, key_filter, controls, obs, truth[0],
-                                            starting_params(config))
+                                            starting_params(config),
+                                            calibrate_gain=not args.no_gain)
         seconds = time.perf_counter() - start
         cal_error, cal_map, _, _, cal_offline = score(
             config, key_filter, calibrated, controls, obs, truth, trees, args.offline)
         rows.append((dr_error, true_error, cal_error, true_map, cal_map, seen))
-        recovered.append(recovery(truth_params, info, controls, obs))
+        # The true noise's typical std over the true model's moves (the readings times
+        # the true gains).
+        true_moves = with_gain(jnp.asarray(controls), truth_params.odometry_gain)
+        recovered.append(recovery(truth_params, info, true_moves, obs))
         if args.bootstrap:
             start = time.perf_counter()
             found = bootstrap_intervals(config, key_filter, controls, obs, truth[0],
                                         starting_params(config), calibrated, info,
                                         replicates=args.bootstrap)
-            booted.append(bootstrap_recovery(truth_params, found, controls, obs))
+            booted.append(bootstrap_recovery(truth_params, found, true_moves, obs))
             print(f"   bootstrap ({args.bootstrap} replicates, "
                   f"{time.perf_counter() - start:.0f} s): true typical std inside the interval:",
                   dict(zip(NOISE_GROUPS, booted[-1].inside)), "interval / EM estimate:",

@@ -35,10 +35,13 @@ has no systematic error keeps its gains. One iteration moves a gain by at most `
 (an association that lost the map can propose any slope), and no gain leaves
 ``GAIN_LIMITS`` (odometry more than a factor 2 off is broken, not miscalibrated).
 
-The smoothed moves are drawn toward the measured ones by the smoother's motion factors, so s
-is biased toward 1 on any one iteration; EM's repetition is what removes that bias, and a
-calibration cut short (EM returns its best run's settings, often those after one M-step)
-leaves part of the gain unfitted.
+The smoothed moves are drawn toward the measured ones by the smoother's motion factors, so
+one fit's s is biased toward 1. EM often returns the settings after its first M-step, so
+each M-step repeats the fit with the association fixed (``self_calibration._fit_gain``):
+smooth with the new gains, fit again, up to ``GAIN_ROUNDS`` fits or until the gains stop
+moving (``GAIN_TOL``), each round's factor applied untested; BIC then tests the total move
+of each gain (``significant_gains``). The re-smoothings cost the smoother's time, no filter
+run.
 
 Shapes: T moves.
 """
@@ -54,6 +57,8 @@ MAD_TO_STD = 1.4826  # the MAD of a Gaussian times this is its std
 MAX_STEP = 1.2  # most one iteration moves a gain (factor either way)
 GAIN_LIMITS = (0.5, 2.0)  # no gain leaves these
 MIN_SAMPLES = 20  # fewer usable samples of a component: no fit
+GAIN_ROUNDS = 4  # fits of the gains per M-step, each followed by a re-smoothing
+GAIN_TOL = 0.002  # the rounds stop once no gain moved by more than this (relative)
 
 
 class SlopeFit(NamedTuple):
@@ -103,7 +108,7 @@ def drive_slope(measured, smoothed) -> SlopeFit:
     return SlopeFit(slope, error, n, bool(kept))
 
 
-def gain_update(gain, true_moves, measured_moves) -> GainFit:
+def gain_update(gain, true_moves, measured_moves, test: bool = True) -> GainFit:
     """The M-step's new ``odometry_gain`` (module docstring).
 
     Args:
@@ -111,14 +116,33 @@ def gain_update(gain, true_moves, measured_moves) -> GainFit:
       true_moves: (T, 3) smoothed moves (rot1, trans, rot2), each in the decomposition
         nearest its measured move (``calibrate.motion_samples``); non-finite rows are left
         out. measured_moves: (T, 3) the moves u_t.
+      test: apply a factor only where BIC keeps it; False: wherever it could be fitted
+        (the rounds of ``self_calibration._fit_gain``, which test the total with
+        ``significant_gains``).
     """
     true_moves, measured_moves = (np.asarray(a, np.float64) for a in (true_moves, measured_moves))
     translation = drive_slope(measured_moves[:, 1], true_moves[:, 1])
     rotation = drive_slope(measured_moves[:, 0] + measured_moves[:, 2],
                            true_moves[:, 0] + true_moves[:, 2])
     old = np.asarray(gain, np.float64)
-    factor = np.array([np.clip(fit.factor, 1.0 / MAX_STEP, MAX_STEP) if fit.kept else 1.0
+    factor = np.array([np.clip(fit.factor, 1.0 / MAX_STEP, MAX_STEP)
+                       if (fit.kept or not test and np.isfinite(fit.standard_error)) else 1.0
                        for fit in (translation, rotation)])
     new = np.clip(old * factor, *GAIN_LIMITS)
     return GainFit(translation, rotation, (float(new[0]), float(new[1])),
                    float(np.max(np.abs(new / old - 1.0))))
+
+
+def significant_gains(given, fitted, last: GainFit) -> tuple[float, float]:
+    """``fitted`` (2,) where BIC keeps its move from ``given`` (2,), else ``given``, per
+    component: ((fitted / given - 1) / se)^2 > log n with the standard error and samples of
+    the last fit ``last`` (at the fitted gains the slope's relative error is the gain's)."""
+    chosen = []
+    for old, new, fit in zip(np.asarray(given, np.float64), np.asarray(fitted, np.float64),
+                             (last.translation, last.rotation)):
+        move = new / old - 1.0
+        keep = fit.samples >= MIN_SAMPLES and (
+            move != 0.0 if fit.standard_error == 0.0
+            else (move / fit.standard_error) ** 2 > np.log(fit.samples))
+        chosen.append(float(new if keep else old))
+    return chosen[0], chosen[1]

@@ -37,9 +37,11 @@ estimation use, with the particle filter as the E-step's data associator:
            loop narrows itself: a tight std splits a tree, and each piece's radii scatter
            less than the whole tree's);
          * ``odometry_gain`` (with the motion noise, unless ``calibrate_gain=False``): the
-           odometry's systematic error, a robust slope of the smoothed moves on the measured
-           ones, kept where BIC calls for it (``odometry_gain``); the next iteration's moves
-           are the readings times the new gains;
+           odometry's systematic error, the least-squares slope of the smoothed moves on
+           the measured ones, kept where BIC calls for it (``odometry_gain``), fitted again
+           on the log smoothed with the new gains until they settle (``_fit_gain``); the
+           noise is fitted around those moves, and the next iteration's moves are the
+           readings times the new gains;
          * ``association_heading_std`` (with the motion noise): the root-mean-square heading
            std that the fitted Eq. (1) gives over the log's own moves
            (``calibration_residuals.typical_stds``). It stands for a heading error of a
@@ -127,9 +129,11 @@ from jaxslam import lineage, smoothing
 from jaxslam.calibration_residuals import NOISE_GROUPS, smoothed_residuals, typical_stds
 from jaxslam.detection_fit import gate_with_radius, sensor_update, single_share
 from jaxslam.filter import run_filter
+from jaxslam.host import in_float64
 from jaxslam.landmark_merge import merge_split_landmarks, relabel
-from jaxslam.odometry_gain import GainFit, gain_update
-from jaxslam.motion import control_to_odometry
+from jaxslam.motion import control_to_odometry, with_gain
+from jaxslam.odometry_gain import (GAIN_ROUNDS, GAIN_TOL, GainFit, gain_update,
+                                   significant_gains)
 from jaxslam.noise_scale import (DEFAULT_SCALES, MOTION_FIELDS, OBSERVATION_FIELDS, ScaleSearch,
                                  any_fair, check_scales, check_workers, describe_search,
                                  fair, first_overflowed, score_trace, search_noise_scales)
@@ -410,6 +414,42 @@ def _radius_update(log: _Log, landmark_of_obs) -> tuple[dict, int, float]:
             radius_noise_relative_error(*history, min_sightings=MIN_SIGHTINGS))
 
 
+def _fit_gain(log: _Log, params: Params, smoothed: smoothing.Smoothed, filter_path, odometry,
+              smooth) -> tuple[smoothing.Smoothed, np.ndarray, GainFit]:
+    """(smoothed, moves (T, 3), fit): ``odometry_gain`` for the association of ``smoothed``
+    (module docstring, step 4): the gains' fit (``odometry_gain.gain_update``), the log
+    smoothed again with the readings times the new gains, and so on, at most
+    ``GAIN_ROUNDS`` fits or until no gain moves by more than ``GAIN_TOL`` (relative); then
+    each gain keeps its total move only where BIC calls for it
+    (``odometry_gain.significant_gains``), and the log is smoothed at the gains kept. Each
+    re-smoothing starts from the last path; the association stays. Without the rounds one
+    M-step moves a gain only part of the way (the smoothed moves are drawn toward the
+    measured ones), and EM often returns the settings after its first M-step. ``fit`` is
+    the last fit with the gains kept and their change."""
+    old = np.asarray(params.odometry_gain, np.float64)
+    readings = in_float64(with_gain, odometry, 1.0 / old)
+    first, gain, moves = smoothed, old, odometry
+    for _ in range(GAIN_ROUNDS):
+        res = smoothed_residuals(log.start, smoothed, filter_path, moves, log.z, params)
+        fit = gain_update(gain, res.measured_moves + res.move_error, res.measured_moves,
+                          test=False)
+        if fit.change == 0.0:
+            break
+        gain = np.asarray(fit.gain, np.float64)
+        moves = in_float64(with_gain, readings, gain)
+        smoothed = smooth(smoothed.path, smoothed.landmark_of_obs, moves)
+        if fit.change < GAIN_TOL:
+            break
+    kept = np.asarray(significant_gains(old, gain, fit), np.float64)
+    if np.array_equal(kept, old):
+        smoothed, moves = first, odometry
+    elif not np.array_equal(kept, gain):
+        moves = in_float64(with_gain, readings, kept)
+        smoothed = smooth(smoothed.path, smoothed.landmark_of_obs, moves)
+    return smoothed, moves, fit._replace(gain=(float(kept[0]), float(kept[1])),
+                                         change=float(np.max(np.abs(kept / old - 1.0))))
+
+
 def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, iteration: int,
             calibrate_sensor: bool, smoother_iterations: int,
             merge_landmarks: bool = False, calibrate_radius: bool = False,
@@ -420,8 +460,8 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
     again with the merged association before the fit (``landmark_merge``). With
     ``calibrate_radius`` also the trunk-radius std (``_radius_update``), kept apart: EM's
     runs match without it (``_with_radius`` applies it after EM). With ``calibrate_gain``
-    also ``odometry_gain`` (``odometry_gain.gain_update``) from the same residuals as the
-    motion noise, which is fitted around the moves of this iteration's gains."""
+    also ``odometry_gain`` (``_fit_gain``); the noise is then fitted to the residuals of the
+    log smoothed with the readings times the new gains."""
     ids = history_associations(history, log.valid)
     false_alarms = single_share(ids)
     ids = confirmed_ids(ids)
@@ -430,20 +470,24 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
                 "calibrate on, the given settings are used")
     filter_path = np.asarray(history.pose, np.float64)
 
-    def smooth(path, landmark_of_obs):
-        return smoothing.smooth_path(log.start, path, odometry, log.z, landmark_of_obs, params,
+    def smooth(path, landmark_of_obs, moves=odometry):
+        return smoothing.smooth_path(log.start, path, moves, log.z, landmark_of_obs, params,
                                      iterations=smoother_iterations, tol=1e-4,
                                      calibrate_rounds=smoothing.VARIANCE_ROUNDS)
 
+    gain, moves = None, odometry
     try:
         smoothed = smooth(filter_path, ids)
         if merge_landmarks:
             smoothed = _merged(smoothed, smooth)
+        if calibrate_gain:
+            smoothed, moves, gain = _fit_gain(log, params, smoothed, filter_path, odometry,
+                                              smooth)
     except (RuntimeError, np.linalg.LinAlgError, ValueError) as error:
         return (f"the smoother failed on this log ({error}); calibration stopped at "
                 f"iteration {iteration}")
     rows = 3 * len(log.controls) + 2 * int((ids >= 0).sum())
-    res = smoothed_residuals(log.start, smoothed, filter_path, odometry, log.z, params)
+    res = smoothed_residuals(log.start, smoothed, filter_path, moves, log.z, params)
     used = res.sightings[res.obs_landmark] >= MIN_SIGHTINGS
     update = {}
     motion = motion_noise_update(res, smoothed.noise_scales, defensive_bursts(config))
@@ -452,11 +496,10 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
         (rot1, trans, rot2), eps, kappa, bursts_fitted = motion
         update.update(rot1_noise=rot1, trans_noise=trans, rot2_noise=rot2,
                       motion_outlier_probability=eps, motion_outlier_scale=kappa)
-    gain = None
-    if calibrate_gain and motion is not None:
-        gain = gain_update(params.odometry_gain, res.measured_moves + res.move_error,
-                           res.measured_moves)
+    if gain is not None and motion is not None:
         update["odometry_gain"] = gain.gain
+    else:
+        gain = None
     obs = observation_noise_update(res, smoothed.noise_scales, used)
     if obs is not None:
         update.update(range_noise=obs[0], bearing_noise=obs[1],

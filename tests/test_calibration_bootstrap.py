@@ -230,12 +230,9 @@ CONFIG = FilterConfig(num_particles=16, max_landmarks=64, max_obs=10, associatio
 @functools.lru_cache(maxsize=1)
 def _calibrated_log():
     """A 120-step loop through 30 trees (the sims scenario), calibrated as a user would."""
-    from loop_log import loop_log  # tests/ is on sys.path
+    from loop_log import loop_log, loop_noise  # tests/ is on sys.path
 
-    truth = default_params(rot1_noise=(0.0, 0.1, 0.001), trans_noise=(0.04, 0.0, 0.001),
-                           rot2_noise=(0.0, 0.1, 0.001), range_noise=(0.01, 0.03),
-                           bearing_noise=(0.001, 0.004), range_std_floor=1e-4,
-                           bearing_std_floor=1e-5, max_range=12.0)
+    truth = loop_noise()
     controls, obs, poses = loop_log(21, 120, 30, 12.0, truth)
     start = poses[0]
     params, info = sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, start,

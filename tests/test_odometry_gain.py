@@ -11,7 +11,7 @@ import pytest
 
 from jaxslam import motion, odometry_gain as og, self_calibration as sc
 from jaxslam.types import FilterConfig, default_params
-from loop_log import loop_log  # tests/ is on sys.path
+from loop_log import loop_log, loop_noise  # tests/ is on sys.path
 
 
 def ref_with_gain(odometry, gain):
@@ -162,11 +162,7 @@ CONFIG = FilterConfig(num_particles=16, max_landmarks=64, max_obs=10, associatio
 
 @functools.lru_cache(maxsize=1)
 def _log():
-    true = default_params(rot1_noise=(0.0, 0.1, 0.001), trans_noise=(0.04, 0.0, 0.001),
-                          rot2_noise=(0.0, 0.1, 0.001), range_noise=(0.01, 0.03),
-                          bearing_noise=(0.001, 0.004), range_std_floor=1e-4,
-                          bearing_std_floor=1e-5, max_range=12.0)
-    return loop_log(7, 200, 40, 16.0, true)
+    return loop_log(7, 200, 40, 16.0, loop_noise())
 
 
 @pytest.mark.parametrize("gain", [(0.9, 0.9), (1.1, 0.85)])
@@ -223,3 +219,22 @@ def ref_odometry(pose_a, pose_b):
     dx, dy = pose_b[0] - pose_a[0], pose_b[1] - pose_a[1]
     rot1 = np.arctan2(dy, dx) - pose_a[2]
     return np.array([rot1, np.hypot(dx, dy), pose_b[2] - pose_a[2] - rot1])
+
+
+def test_untested_rounds_and_the_total_tested_by_bic():
+    """gain_update(test=False) applies a factor BIC would drop; significant_gains keeps a
+    total move of twice the BIC threshold in standard errors and drops one of half of it."""
+    x, y = _draws(3, 300, 1.0)
+    measured = np.stack([0.5 * x, np.abs(x), 0.5 * x], 1)
+    true = measured + np.stack([0 * x, np.sign(x) * (y - x), 0 * x], 1)
+    tested = og.gain_update((1.0, 1.0), true, measured)
+    untested = og.gain_update((1.0, 1.0), true, measured, test=False)
+    assert not tested.translation.kept and tested.gain[0] == 1.0
+    assert untested.translation.factor != 1.0
+    assert untested.gain[0] == pytest.approx(untested.translation.factor)
+    se, n = untested.translation.standard_error, untested.translation.samples
+    assert 0.0 < se < 0.1
+    far = 1.0 + 2.0 * se * np.sqrt(np.log(n))
+    near = 1.0 + 0.5 * se * np.sqrt(np.log(n))
+    assert og.significant_gains((1.0, 1.0), (far, 1.0), untested) == (pytest.approx(far), 1.0)
+    assert og.significant_gains((1.0, 1.0), (near, 1.0), untested) == (1.0, 1.0)

@@ -21,16 +21,13 @@ from jaxslam.noise_fit import (host_motion_fit, host_observation_fit,
                                radius_noise_from_history,
                                radius_noise_relative_error, rescale)
 from jaxslam.types import FilterConfig, default_params, make_observations
-from loop_log import loop_log  # tests/ is on sys.path
+from loop_log import loop_log, loop_noise  # tests/ is on sys.path
 
 CONFIG = FilterConfig(num_particles=16, max_landmarks=64, max_obs=10, association="known")
 
 
 def _true_params():
-    return default_params(rot1_noise=(0.0, 0.1, 0.001), trans_noise=(0.04, 0.0, 0.001),
-                          rot2_noise=(0.0, 0.1, 0.001), range_noise=(0.01, 0.03),
-                          bearing_noise=(0.001, 0.004), range_std_floor=1e-4,
-                          bearing_std_floor=1e-5, max_range=12.0)
+    return loop_noise()
 
 
 @functools.lru_cache(maxsize=1)

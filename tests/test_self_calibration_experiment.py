@@ -202,3 +202,14 @@ def test_bootstrap_recovery_and_its_table(tmp_path, monkeypatch):
     heading = [c.strip() for c in rows[0].strip("|").split("|")]
     assert heading == ["500", "2", "2", "0", "20", "heading", "2", "1.10", "1.30", "1.25",
                        "1 of 2"]
+
+
+def test_logs_read_with_a_gain():
+    """``read_with_gain``: the readings times the gains are the log's moves (rot1 and rot2
+    by g_r, trans by g_t); gains (1, 1) return the moves themselves."""
+    from experiments.self_calibration import read_with_gain
+
+    moves = np.array([[0.1, 0.5, -0.2], [0.0, 0.4, 0.05]], np.float32)
+    readings = np.asarray(read_with_gain(moves, (0.8, 0.5)), np.float64)
+    np.testing.assert_allclose(readings * [0.5, 0.8, 0.5], moves, rtol=1e-6)
+    assert read_with_gain(moves, (1.0, 1.0)) is moves
