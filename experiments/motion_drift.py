@@ -83,6 +83,8 @@ from jaxslam.calibrate import MAD_TO_STD  # noqa: E402
 from jaxslam.calibration_bootstrap import log_solution, replicate_log  # noqa: E402
 from jaxslam.datasets.odometry import odometry_path  # noqa: E402
 from jaxslam.filter import run_filter  # noqa: E402
+from jaxslam.host import in_float64  # noqa: E402
+from jaxslam.motion import with_gain  # noqa: E402
 from jaxslam.self_calibration import group_scales  # noqa: E402
 from jaxslam.smoothing.residuals import wrap  # noqa: E402
 from jaxslam.types import FilterConfig  # noqa: E402
@@ -185,16 +187,19 @@ def drift_against_model(config: FilterConfig, filter_params, model_params, contr
     start = np.asarray(start, np.float64)
     solution = log_solution(config, jax.random.PRNGKey(seed), filter_params, controls,
                             observations, start)
+    # The measured moves are the readings times the model's odometry gains (motion.py).
+    measured = in_float64(with_gain, controls, model_params.odometry_gain)
     if model_params is not filter_params:
-        smoothed = _smooth(start, solution.path, np.asarray(controls, np.float64),
-                           observations.z, solution.landmark_of_obs, model_params)
+        smoothed = _smooth(start, solution.path, measured, observations.z,
+                           solution.landmark_of_obs, model_params)
         solution = solution._replace(path=np.asarray(smoothed.path, np.float64),
                                      landmark=np.asarray(smoothed.landmark, np.float64))
-    log_variance = windowed_variance(heading_errors(controls, start, solution.path), windows)
+    log_variance = windowed_variance(heading_errors(measured, start, solution.path), windows)
     replicate_variance = []
     for index in range(replicates):
         key = jax.random.fold_in(jax.random.PRNGKey(seed), 1000 + index)
-        moves, drawn = replicate_log(key, solution, model_params, observations, bursts)
+        readings, drawn = replicate_log(key, solution, model_params, observations, bursts)
+        moves = in_float64(with_gain, readings, model_params.odometry_gain)
         smoothed = _smooth(start, solution.path, moves, drawn.z, solution.landmark_of_obs,
                            model_params)
         replicate_variance.append(windowed_variance(

@@ -22,6 +22,10 @@ sampling error of its samples). With ``--bootstrap B`` also whether the truth li
 the parametric bootstrap's interval (``jaxslam.calibration_bootstrap``: B replicate logs
 drawn from the calibrated model and calibrated again, which counts EM's bias as well).
 
+``--odometry-gain G_T G_R`` reads each log's moves with a systematic error (the robot drives
+G_T times and turns G_R times what its odometry says); the calibration then fits
+``params.odometry_gain`` as well, unless ``--no-gain``.
+
     python experiments/self_calibration.py --runs 8 --odometry-scale 2 --sensor-scale 5
 """
 from __future__ import annotations
@@ -328,6 +332,8 @@ def main(argv=None):
                         help="also score the offline estimate (smoothed, missed loops closed: "
                         "offline_error) of both filters; results/self_calibration/offline.md")
     args = parser.parse_args(argv)
+    if min(args.odometry_gain) <= 0.0:
+        parser.error(f"--odometry-gain {args.odometry_gain}: expected two gains > 0")
     config = FilterConfig(num_particles=args.particles, max_landmarks=96, max_obs=12,
                           proposal=args.proposal)
     truth_params = true_params(args.odometry_scale, args.sensor_scale)._replace(
@@ -358,7 +364,8 @@ def main(argv=None):
             start = time.perf_counter()
             found = bootstrap_intervals(config, key_filter, controls, obs, truth[0],
                                         starting_params(config), calibrated, info,
-                                        replicates=args.bootstrap)
+                                        replicates=args.bootstrap,
+                                        calibrate_gain=not args.no_gain)
             booted.append(bootstrap_recovery(truth_params, found, true_moves, obs))
             print(f"   bootstrap ({args.bootstrap} replicates, "
                   f"{time.perf_counter() - start:.0f} s): true typical std inside the interval:",

@@ -35,8 +35,9 @@ uses is the reading times the gains g = ``params.odometry_gain`` = (g_t, g_r),
 
     u = (g_r rot1_read, g_t trans_read, g_r rot2_read),
 
-and Eq. (1)'s noise is around u, with its std evaluated at u (``control_to_odometry``, the one
-place a reading becomes a move). g = (1, 1) (the default) leaves every reading as it is, bit
+and Eq. (1)'s noise is around u, with its std evaluated at u (``control_to_odometry``, where
+the filter turns a reading into a move; host code that smooths odometry readings calls
+``with_gain`` itself). g = (1, 1) (the default) leaves every reading as it is, bit
 for bit; ``calibrate_params`` fits g from the log (``odometry_gain.gain_update``).
 
 Shapes: ``pose`` (..., 3), ``control`` (..., 3), ``odometry`` (..., 3) = (rot1, trans, rot2).
@@ -187,7 +188,8 @@ def ackermann_delta(control, params: Params):
 
 def with_gain(odometry, gain):
     """The reading ``odometry`` (..., 3) = (rot1, trans, rot2) times the gains ``gain`` (2,)
-    = (g_t, g_r): (g_r rot1, g_t trans, g_r rot2) (module docstring, systematic error)."""
+    = (g_t, g_r) (or gains (..., 2) of the same leading shape): (g_r rot1, g_t trans,
+    g_r rot2) (module docstring, systematic error)."""
     gain = jnp.asarray(gain, odometry.dtype)
     factor = jnp.stack([gain[..., 1], gain[..., 0], gain[..., 1]], axis=-1)
     return odometry * jnp.broadcast_to(factor, odometry.shape)

@@ -132,8 +132,8 @@ from jaxslam.filter import run_filter
 from jaxslam.host import in_float64
 from jaxslam.landmark_merge import merge_split_landmarks, relabel
 from jaxslam.motion import control_to_odometry, with_gain
-from jaxslam.odometry_gain import (GAIN_ROUNDS, GAIN_TOL, GainFit, gain_update,
-                                   significant_gains)
+from jaxslam.odometry_gain import (GAIN_ROUNDS, GAIN_TOL, MAX_STEP, GainFit, contraction,
+                                   gain_update, significant_gains)
 from jaxslam.noise_scale import (DEFAULT_SCALES, MOTION_FIELDS, OBSERVATION_FIELDS, ScaleSearch,
                                  any_fair, check_scales, check_workers, describe_search,
                                  fair, first_overflowed, score_trace, search_noise_scales)
@@ -415,37 +415,44 @@ def _radius_update(log: _Log, landmark_of_obs) -> tuple[dict, int, float]:
 
 
 def _fit_gain(log: _Log, params: Params, smoothed: smoothing.Smoothed, filter_path, odometry,
-              smooth) -> tuple[smoothing.Smoothed, np.ndarray, GainFit]:
+              smooth) -> tuple[smoothing.Smoothed, np.ndarray, GainFit | None]:
     """(smoothed, moves (T, 3), fit): ``odometry_gain`` for the association of ``smoothed``
-    (module docstring, step 4): the gains' fit (``odometry_gain.gain_update``), the log
-    smoothed again with the readings times the new gains, and so on, at most
-    ``GAIN_ROUNDS`` fits or until no gain moves by more than ``GAIN_TOL`` (relative); then
-    each gain keeps its total move only where BIC calls for it
-    (``odometry_gain.significant_gains``), and the log is smoothed at the gains kept. Each
-    re-smoothing starts from the last path; the association stays. Without the rounds one
-    M-step moves a gain only part of the way (the smoothed moves are drawn toward the
-    measured ones), and EM often returns the settings after its first M-step. ``fit`` is
-    the last fit with the gains kept and their change."""
+    (module docstring, step 4; ``odometry_gain``): the gains' fit
+    (``odometry_gain.gain_update``), the log smoothed again with the readings times the new
+    gains, and so on, at most ``GAIN_ROUNDS`` fits or until no gain moves by more than
+    ``GAIN_TOL`` (relative); the total move held within ``MAX_STEP``; then each gain keeps
+    it only where BIC calls for it (``odometry_gain.significant_gains``, the slope's error
+    inflated by the rounds' contraction), and the log is smoothed at the gains kept. Each
+    re-smoothing starts from the last path; the association stays. ``smoothed`` and the
+    given moves come back, with fit None, when the log has fewer than ``MIN_MOVES`` smoothed
+    moves or a re-smoothing fails; ``fit`` is the last round's, with the gains kept and
+    their change."""
     old = np.asarray(params.odometry_gain, np.float64)
     readings = in_float64(with_gain, odometry, 1.0 / old)
-    first, gain, moves = smoothed, old, odometry
-    for _ in range(GAIN_ROUNDS):
-        res = smoothed_residuals(log.start, smoothed, filter_path, moves, log.z, params)
-        fit = gain_update(gain, res.measured_moves + res.move_error, res.measured_moves,
-                          test=False)
-        if fit.change == 0.0:
-            break
-        gain = np.asarray(fit.gain, np.float64)
-        moves = in_float64(with_gain, readings, gain)
-        smoothed = smooth(smoothed.path, smoothed.landmark_of_obs, moves)
-        if fit.change < GAIN_TOL:
-            break
-    kept = np.asarray(significant_gains(old, gain, fit), np.float64)
-    if np.array_equal(kept, old):
-        smoothed, moves = first, odometry
-    elif not np.array_equal(kept, gain):
-        moves = in_float64(with_gain, readings, kept)
-        smoothed = smooth(smoothed.path, smoothed.landmark_of_obs, moves)
+    first, gain, moves, factors = smoothed, old, odometry, []
+    try:
+        for _ in range(GAIN_ROUNDS):
+            res = smoothed_residuals(log.start, smoothed, filter_path, moves, log.z, params)
+            if int(np.all(np.isfinite(res.true_moves), axis=1).sum()) < MIN_MOVES:
+                return first, odometry, None
+            fit = gain_update(gain, res.measured_moves + res.move_error, res.measured_moves,
+                              res.move_std)
+            factors.append((fit.translation.factor, fit.rotation.factor))
+            if fit.change == 0.0:
+                break
+            gain = old * np.clip(np.asarray(fit.gain) / old, 1.0 / MAX_STEP, MAX_STEP)
+            moves = in_float64(with_gain, readings, gain)
+            smoothed = smooth(smoothed.path, smoothed.landmark_of_obs, moves)
+            if fit.change < GAIN_TOL:
+                break
+        kept = np.asarray(significant_gains(old, gain, fit, contraction(factors)))
+        if np.array_equal(kept, old):
+            smoothed, moves = first, odometry
+        elif not np.array_equal(kept, gain):
+            moves = in_float64(with_gain, readings, kept)
+            smoothed = smooth(smoothed.path, smoothed.landmark_of_obs, moves)
+    except (RuntimeError, np.linalg.LinAlgError, ValueError):
+        return first, odometry, None
     return smoothed, moves, fit._replace(gain=(float(kept[0]), float(kept[1])),
                                          change=float(np.max(np.abs(kept / old - 1.0))))
 
@@ -496,10 +503,8 @@ def _m_step(config: FilterConfig, params: Params, log: _Log, odometry, history, 
         (rot1, trans, rot2), eps, kappa, bursts_fitted = motion
         update.update(rot1_noise=rot1, trans_noise=trans, rot2_noise=rot2,
                       motion_outlier_probability=eps, motion_outlier_scale=kappa)
-    if gain is not None and motion is not None:
+    if gain is not None:
         update["odometry_gain"] = gain.gain
-    else:
-        gain = None
     obs = observation_noise_update(res, smoothed.noise_scales, used)
     if obs is not None:
         update.update(range_noise=obs[0], bearing_noise=obs[1],
@@ -681,8 +686,8 @@ def _progress_line(iteration: int, objective: float, typical, change: float,
     full = f", map full{at}: {dropped} births dropped{why}" if dropped else ""
     return (f"calibration iteration {iteration}: log marginal likelihood {objective:.1f}{full}, "
             f"typical stds heading {typical[0]:.4g} rad, translation {typical[1]:.4g} m, "
-            f"range {typical[2]:.4g} m, bearing {typical[3]:.4g} rad (largest change "
-            f"{change:.1%})")
+            f"range {typical[2]:.4g} m, bearing {typical[3]:.4g} rad (largest change of a std "
+            f"or an odometry gain {change:.1%})")
 
 
 def _no_fair_run(objective, dropped) -> bool:
@@ -778,7 +783,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         it estimates from the motion noise, is set from their motion noise on this log for
         the EM runs too, and returned as given when no motion fit lies behind the result.
       iterations: most EM iterations (each one filter run). tol: stop when every noise
-        group's typical std moved by less than this fraction in one iteration. The default 5
+        group's typical std, and each odometry gain, moved by less than this fraction in one
+        iteration. The default 5
         (6 until 2026-12-05) returns the same settings on every log whose EM likelihoods
         docs/results.md records (MRCLAM robots 1-5, Victoria Park, twelve simulated logs): none
         scored its best after its fifth run, and a sixth run cost a filter run on Victoria
@@ -892,7 +898,10 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         last = step
         m_steps.append(step)  # m_steps[i] made the settings of filter run i + 1
         costs.append(step.cost)
-        params = _trust_region(params, _with_values(params, step.update), odometry, z_range)
+        fitted = _with_values(params, step.update)
+        # The new settings' moves (their gains), for the limits and the heading std below.
+        odometry = np.asarray(control_to_odometry(controls, fitted, motion_model), np.float64)
+        params = _trust_region(params, fitted, odometry, z_range)
         if step.motion_fitted:
             params = with_typical_heading_std(params, odometry, z_range)
         values.update({name: _plain(getattr(params, name)) for name in step.update})
@@ -969,8 +978,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                    f"{patience} runs beat the best run before them: the highest log "
                    "marginal likelihood among the runs that kept every birth)")
     else:
-        verdict = (f"not converged after {done} iterations (the last moved a noise std by "
-                   f"more than {tol:.0%})")
+        verdict = (f"not converged after {done} iterations (the last moved a noise std or "
+                   f"an odometry gain by more than {tol:.0%})")
     verdict += chosen
     if warnings:
         verdict += "; partly calibrated (see warnings)"
