@@ -1,7 +1,7 @@
 """The odometry's systematic error (``params.odometry_gain``): the gained move against NumPy
 float64, with and without jit, under vmap and at its edges; the drive's slope against a
-NumPy reference and over many draws; BIC and the rounds' contraction; and the calibration recovering a gain a simulated log was
-read with."""
+NumPy reference and over many draws; BIC and the rounds' contraction; the calibration
+recovering a gain a simulated log was read with; the bootstrap's replicates."""
 import functools
 
 import jax
