@@ -616,7 +616,7 @@ def test_calibration_print_gives_the_radius_std_with_its_interval(capsys):
 
 def test_em_patience_option_reaches_the_calibration():
     """``--em-patience N`` is calibrate_params' patience, 0 is None (no early stop);
-    ``--no-gain`` keeps the odometry's gains (calibrate_gain=False);
+    ``--fit-gain`` also fits the odometry's gains (calibrate_gain=True);
     ``--search-workers N`` its search_workers (absent: None, the default); a negative
     patience or a worker count below 1 is refused with a message naming the flag."""
     import argparse
@@ -629,9 +629,9 @@ def test_em_patience_option_reaches_the_calibration():
     for command in (["calibrate", "--data", "x.npz", "--out", "p.toml"], ["run", "--data", "x.npz"]):
         assert _calibration_options(parser.parse_args(command))["patience"] == 2
         given = parser.parse_args(command + ["--em-patience", "3"])
-        assert _calibration_options(given) == {"scale_search": True, "calibrate_gain": True,
+        assert _calibration_options(given) == {"scale_search": True, "calibrate_gain": False,
                                                "patience": 3, "search_workers": None}
-        assert not _calibration_options(parser.parse_args(command + ["--no-gain"]))[
+        assert _calibration_options(parser.parse_args(command + ["--fit-gain"]))[
             "calibrate_gain"]
         assert _calibration_options(parser.parse_args(command + ["--em-patience", "0"]))[
             "patience"] is None

@@ -339,7 +339,7 @@ def _delay_note(delay) -> str:
 
 def _calibration_options(args) -> dict:
     """``calibrate_params`` keywords from the command line (``--no-scale-search``,
-    ``--no-gain``, ``--em-patience N``, 0 for none; ``--search-workers N``, absent for the
+    ``--fit-gain``, ``--em-patience N``, 0 for none; ``--search-workers N``, absent for the
     default)."""
     patience = getattr(args, "em_patience", 2)
     if patience < 0:
@@ -350,7 +350,7 @@ def _calibration_options(args) -> dict:
         raise UsageError(f"--search-workers must be a positive number of filter runs at "
                          f"once; got {workers}")
     return {"scale_search": not getattr(args, "no_scale_search", False),
-            "calibrate_gain": not getattr(args, "no_gain", False),
+            "calibrate_gain": getattr(args, "fit_gain", False),
             "patience": patience or None, "search_workers": workers}
 
 
