@@ -23,8 +23,8 @@ the parametric bootstrap's interval (``jaxslam.calibration_bootstrap``: B replic
 drawn from the calibrated model and calibrated again, which counts EM's bias as well).
 
 ``--odometry-gain G_T G_R`` reads each log's moves with a systematic error (the robot drives
-G_T times and turns G_R times what its odometry says); the calibration then fits
-``params.odometry_gain`` as well, unless ``--no-gain``.
+G_T times and turns G_R times what its odometry says); ``--fit-gain`` has the calibration fit
+``params.odometry_gain`` as well (off by default, as in the library).
 
     python experiments/self_calibration.py --runs 8 --odometry-scale 2 --sensor-scale 5
 """
@@ -320,9 +320,9 @@ def main(argv=None):
                              "reads: each log's moves are read divided by these gains (the "
                              "true-noise filter is given them) (default: 1 1: no systematic "
                              "error)")
-    parser.add_argument("--no-gain", action="store_true",
-                        help="calibrate without fitting the odometry's gains "
-                             "(calibrate_gain=False) (default: off: fit them)")
+    parser.add_argument("--fit-gain", action="store_true",
+                        help="also fit the odometry's gains (calibrate_gain=True) "
+                             "(default: off, as in the library)")
     parser.add_argument("--bootstrap", type=int, default=0, metavar="B",
                         help="also state each noise group's parametric-bootstrap interval "
                         "from B replicate calibrations (calibration_bootstrap; B >= 2, about "
@@ -351,7 +351,7 @@ def main(argv=None):
         start = time.perf_counter()
         calibrated, info = calibrate_params(config, key_filter, controls, obs, truth[0],
                                             starting_params(config),
-                                            calibrate_gain=not args.no_gain)
+                                            calibrate_gain=args.fit_gain)
         seconds = time.perf_counter() - start
         cal_error, cal_map, _, _, cal_offline = score(
             config, key_filter, calibrated, controls, obs, truth, trees, args.offline)
@@ -365,7 +365,7 @@ def main(argv=None):
             found = bootstrap_intervals(config, key_filter, controls, obs, truth[0],
                                         starting_params(config), calibrated, info,
                                         replicates=args.bootstrap,
-                                        calibrate_gain=not args.no_gain)
+                                        calibrate_gain=args.fit_gain)
             booted.append(bootstrap_recovery(truth_params, found, true_moves, obs))
             print(f"   bootstrap ({args.bootstrap} replicates, "
                   f"{time.perf_counter() - start:.0f} s): true typical std inside the interval:",
