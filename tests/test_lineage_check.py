@@ -1,5 +1,7 @@
 """The lineage check: association quality against a hand-worked example, and the script end to
 end on two tiny logs (30 steps, 4 particles) with its bit-for-bit check of the online errors."""
+import re
+
 import numpy as np
 import pytest
 
@@ -167,11 +169,18 @@ def test_script_end_to_end(tmp_path):
     assert table["loop_mismatch"].shape == table["loop_closed"].shape == table["loop_log"].shape
 
 
-def test_script_reproduces_information_floor_bit_for_bit(tmp_path):
+def test_script_reproduces_information_floor_to_float32_rounding(tmp_path):
     """``--check``: the lineage run's online errors equal information_floor.filter_errors'
-    (no lineage, same keys and chunk) exactly."""
+    (no lineage, same keys and chunk) to float32 rounding. They were equal bit for bit until
+    the odometry gains' multiply (``motion.with_gain``, by 1 here) entered the step: XLA
+    fuses the two programs differently since, and the final errors of these 30-step runs
+    differ by 3.6e-5 m at most (measured); 1e-4 m is float32's spacing at 40 m times about
+    25 rounding steps."""
     text, _ = run_tiny(tmp_path / "tiny", "--check")
-    assert "bit for bit in 2 / 2 logs" in text
+    found = re.search(r"bit for bit in (\d+) / 2 logs \(largest difference ([0-9.e+-]+) m\)",
+                      text)
+    assert found, text
+    assert float(found.group(2)) < 1e-4
 
 
 def test_proposal_option_runs_another_filter(tmp_path):

@@ -607,11 +607,15 @@ def _rows(trace, steps):
 
 
 def _close_with_a_looser_ess(actual, expected):
-    """Two runs' traces equal to float32 rounding: the ESS to rtol 1e-4, every other leaf to
-    1e-5 (the measured values are where this is called)."""
+    """Two runs' traces equal to float32 rounding: the ESS to rtol 3e-4, every other leaf to
+    rtol 3e-5 (the measured values are where this is called). Since the odometry gains'
+    multiply (by 1 here) entered the step, XLA fuses the compared programs differently and
+    the rounding reaches 1.12e-4 relative in the ESS (a ratio of sums of exponentials, which
+    amplifies the weights' rounding) and 9.2e-6 in the log evidence (1e-4 and 1e-5 held
+    before). A run that resampled or matched differently differs by far more."""
     chex.assert_trees_all_close(actual._replace(ess=None), expected._replace(ess=None),
-                                rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(actual.ess, expected.ess, rtol=1e-4, atol=1e-5)
+                                rtol=3e-5, atol=1e-5)
+    np.testing.assert_allclose(actual.ess, expected.ess, rtol=3e-4, atol=1e-5)
 
 
 def test_run_filter_stops_at_the_first_dropped_birth():
@@ -652,8 +656,8 @@ def test_run_filter_stops_at_the_first_dropped_birth():
     # mean pose, ESS, evidence) agree to float32 rounding of differently fused arithmetic
     # (bit-identical with XLA:CPU's fusion emitters; with its older emitters, which the
     # default test tier uses, 5e-7 relative in the poses, 9e-7 in the evidence and 1.5e-5
-    # in the ESS, whose squared normalised weights magnify the log-weights' rounding: 1e-4
-    # for the ESS, 1e-5 for the rest).
+    # in the ESS, whose squared normalised weights magnify the log-weights' rounding; more
+    # since the odometry gains' multiply entered the step: ``_close_with_a_looser_ess``).
     _, off = run_filter(CONFIG, key, params, controls, obs, poses[0], record_lineage=True)
     _, on = run_filter(CONFIG, key, params, controls, obs, poses[0], record_lineage=True,
                        stop_at_dropped_birth=True)
