@@ -814,11 +814,10 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         measured ones, kept only where BIC calls for it). Off by default (the given gains
         are kept): the gains come out right (within 1 % on simulated logs read with a
         known gain, within 0.02 of Vicon's drive ratios on MRCLAM robots 2, 3 and 5), but
-        the online filter with them did worse on those simulated logs (final error 0.87
-        against 0.38 m without the fit) and no better on MRCLAM (docs/results.md, mrclam
-        and self_calibration, "Twenty-sixth session"): the noise fitted around the gained
-        moves is narrower, and the filter does better with the systematic error counted
-        as noise.
+        the online filter with them did no better on those simulated logs (median final
+        error 0.87 against 0.38 m without the fit, 4 against 3 of 8 logs over 0.5 m: the
+        runs flip log by log) nor on MRCLAM (docs/results.md, mrclam and self_calibration,
+        "Twenty-sixth session"), and the fit costs smoothings.
       smoother_iterations: most Levenberg-Marquardt steps of each smoothing.
       merge_landmarks: in each M-step, merge the smoothed landmarks that were never observed
         at one step and lie closer than half the distance of any two that were
