@@ -59,9 +59,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxslam.calibrate import MAD_TO_STD
+
 OUTLIER_MADS = 5.0  # standardised residuals farther than this many robust scales: left out
 GUARD_ROUNDS = 3  # guard passes; each refits with the previous pass's outliers left out
-MAD_TO_STD = 1.4826  # the MAD of a Gaussian times this is its std
 MAX_STEP = 1.2  # most one M-step moves a gain (factor either way)
 GAIN_LIMITS = (0.5, 2.0)  # no fitted gain leaves these
 MAX_CONTRACTION = 0.9  # most the rounds' lambda is taken as (se inflated at most 10x)

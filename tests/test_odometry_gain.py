@@ -45,16 +45,21 @@ def test_with_gain_under_vmap_over_gains_and_moves():
                                             ("velocity", (1.0, 0.3, 0.5)),
                                             ("ackermann", (2.0, 0.1, 0.25))])
 def test_the_default_gain_leaves_every_reading_bit_for_bit(model, control):
-    """Gains (1, 1) multiply by exactly 1: every model's move is the reading's."""
+    """Gains (1, 1) multiply by exactly 1: every model's move is its reading, computed here
+    without the gain (the control itself, or the integrated move's decomposition); other
+    gains scale that reading (g_r rot1, g_t trans, g_r rot2)."""
     params = default_params()
     control = jnp.asarray(control, jnp.float32)
-    with_default = motion.control_to_odometry(control, params, model)
-    without = motion.control_to_odometry(
-        control, params._replace(odometry_gain=jnp.asarray([1.0, 1.0], jnp.float32)), model)
-    np.testing.assert_array_equal(with_default, without)
+    if model == "odometry":
+        reading = control
+    else:
+        delta = (motion.arc_delta(control[0], control[1], control[2]) if model == "velocity"
+                 else motion.ackermann_delta(control, params))
+        reading = motion.odometry_from_relative(delta, params.min_translation)
+    np.testing.assert_array_equal(motion.control_to_odometry(control, params, model), reading)
     scaled = motion.control_to_odometry(
         control, params._replace(odometry_gain=jnp.asarray([0.9, 1.1], jnp.float32)), model)
-    np.testing.assert_allclose(scaled, ref_with_gain(with_default, (0.9, 1.1)), rtol=1e-6)
+    np.testing.assert_allclose(scaled, ref_with_gain(reading, (0.9, 1.1)), rtol=1e-6)
 
 
 def test_prediction_and_density_use_the_gained_move():
