@@ -7,6 +7,11 @@ sensor settings from that robot's odometry and measurements alone, then filters;
 scores (ATE of the online mean path and of the smoothed one, against dead reckoning).
 
     python experiments/mrclam.py [--robots 1 2 3 4 5] [--particles 100] [--close-loops]
+                                 [--filter-keys N] [--fit-gain]
+
+``--filter-keys N`` runs the calibrated settings with N more filter keys and prints, for each,
+the ratio of dead reckoning's ATE to the online path's and to the smoothed best history's.
+``--fit-gain`` also fits the odometry's gains (``calibrate_params(calibrate_gain=True)``).
 
 The odometry is the commanded velocities, which the robots follow with a lag. By default
 (``--command-delay auto``) the lag is fitted from the log too: one filter run of the log as
@@ -88,6 +93,9 @@ def main(argv=None):
                              "median ratio (default: 0): single runs of one setting vary by "
                              "up to 3.2x on these robots at the default settings, more with "
                              "--barcodes or without the existence cap")
+    parser.add_argument("--fit-gain", action="store_true",
+                        help="also fit the odometry's gains (calibrate_gain=True) "
+                             "(default: off, as in the library)")
     parser.add_argument("--filter-particles", type=int, default=None,
                         help="particles of the --filter-keys runs (default: --particles); "
                              "the calibration and the key-0 run keep --particles, so this "
@@ -100,9 +108,11 @@ def main(argv=None):
     if args.filter_particles is not None and not args.filter_keys:
         parser.error("--filter-particles sets the particles of the --filter-keys runs: give "
                      "--filter-keys N too")
-    if args.barcodes != "none" and (args.no_calibrate or args.close_loops):
+    if args.barcodes != "none" and (args.no_calibrate or args.close_loops or args.fit_gain):
         parser.error("--barcodes calibrates and filters only (no --no-calibrate, "
-                     "--close-loops)")
+                     "--close-loops, --fit-gain)")
+    if args.fit_gain and args.no_calibrate:
+        parser.error("--fit-gain fits the gains in the calibration: not with --no-calibrate")
     if args.command_delay == "auto" and (args.no_calibrate or args.barcodes != "none"):
         parser.error("--command-delay auto fits the delay with the blind calibration: give "
                      "--command-delay 0 (or a number of seconds) with --no-calibrate or "
@@ -144,6 +154,7 @@ def main(argv=None):
                                   jax.random.PRNGKey(args.seed),
                                   calibrate=not args.no_calibrate, smooth=True,
                                   close_loops=args.close_loops,
+                                  calibration_options={"calibrate_gain": args.fit_gain},
                                   command_delay="auto" if delay == "auto" else None)
         seconds = time.perf_counter() - start
         if run.delay_fit is not None:
@@ -173,11 +184,10 @@ def main(argv=None):
         if args.filter_keys:
             keys_config = dataclasses.replace(
                 config, num_particles=args.filter_particles or args.particles)
-            _, ratios, _, kept = filter_variant(
-                run.params, pipeline.log_inputs(log, keys_config), truth, dr_ate,
-                range(100, 100 + args.filter_keys))
-            print(keys_summary(ratios, kept, args.filter_keys, keys_config.num_particles),
-                  flush=True)
+            runs = filter_variant(run.params, pipeline.log_inputs(log, keys_config), truth,
+                                  dr_ate, range(100, 100 + args.filter_keys), log.motion_model)
+            print(keys_summary(runs.ratios, runs.kept, args.filter_keys,
+                               keys_config.num_particles, runs.smoothed), flush=True)
     rows = np.asarray(rows)
     smoothed = ("" if args.barcodes != "none"  # the barcode runs are not smoothed
                 else f", smoothed {np.median(rows[:, 2]):.3f} m")
@@ -186,12 +196,20 @@ def main(argv=None):
           f"{np.median(rows[:, 0] / rows[:, 1]):.2f}; landmarks {np.median(rows[:, 3]):.0f}")
 
 
-def keys_summary(ratios, kept, num_keys: int, particles: int) -> str:
+def keys_summary(ratios, kept, num_keys: int, particles: int, smoothed=()) -> str:
     """One line on the filter keys 100, 101, ...: the median (and each) dead reckoning /
-    filter ATE ratio, and the median final landmark count ``kept``."""
-    return (f"   filter keys 100-{99 + num_keys} (P = {particles}): dead reckoning / filter "
+    filter ATE ratio, the median final landmark count ``kept`` and, when given, the same
+    ratios of each run's smoothed best history ``smoothed`` (NaN: the smoother failed; the
+    median is over the others)."""
+    line = (f"   filter keys 100-{99 + num_keys} (P = {particles}): dead reckoning / filter "
             f"ATE median {np.median(ratios):.2f}x ({' '.join(f'{r:.2f}' for r in ratios)}); "
             f"landmarks kept, median {kept:.0f}")
+    if len(smoothed):
+        failed = int(np.sum(np.isnan(smoothed)))
+        line += (f"; smoothed: median {np.nanmedian(smoothed):.2f}x "
+                 f"({' '.join(f'{r:.2f}' for r in smoothed)})"
+                 + (f", {failed} smoother failures" if failed else ""))
+    return line
 
 
 def start_params(config: FilterConfig, existence_max: float | None, calibrate: bool = True):

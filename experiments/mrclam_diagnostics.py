@@ -171,13 +171,31 @@ def camera_detection_rate(truth_pose, landmarks, barcode, valid, miss_range, mis
                       share(both & ~seen[:-1]), int(np.sum(runs >= miss_run)), len(runs))
 
 
-def filter_variant(params, inputs, truth, dead_reckoning_ate, keys):
-    """(median ratio, ratios, median identities, median landmarks kept) of filter runs with
-    ``params`` over the PRNG keys ``keys``: inputs = ``pipeline.log_inputs``' (config,
-    controls, observations, start); truth (T, 3) Vicon poses; ratio = dead reckoning's ATE
-    over the run's."""
+class VariantRuns(NamedTuple):
+    """Filter runs of one setting over several PRNG keys (``filter_variant``).
+
+    median: median ratio; ratios: dead reckoning's ATE over each run's online mean path's;
+    identities: median identities started along the best history; kept: median landmarks
+    kept at the end; smoothed: dead reckoning's ATE over each run's smoothed best history
+    (``pipeline.offline_path``, as ``filter_log(..., smooth=True)``), () unless asked for.
+    """
+
+    median: float
+    ratios: list
+    identities: float
+    kept: float
+    smoothed: tuple = ()
+
+
+def filter_variant(params, inputs, truth, dead_reckoning_ate, keys,
+                   smooth_motion_model: str | None = None) -> VariantRuns:
+    """``VariantRuns`` of filter runs with ``params`` over the PRNG keys ``keys``: inputs =
+    ``pipeline.log_inputs``' (config, controls, observations, start); truth (T, 3) Vicon
+    poses; ratio = dead reckoning's ATE over the run's. With ``smooth_motion_model`` (the
+    log's motion model) each run's best history is also smoothed as the pipeline smooths it
+    (NaN for a run whose smoother fails)."""
     config, controls, obs, start = inputs
-    ratios, identities, kept = [], [], []
+    ratios, identities, kept, smoothed = [], [], [], []
     for key in keys:
         final, trace = run_filter(config, jax.random.PRNGKey(key), params, controls, obs,
                                   jnp.asarray(start, jnp.float32), record_lineage=True)
@@ -186,8 +204,16 @@ def filter_variant(params, inputs, truth, dead_reckoning_ate, keys):
         identities.append(landmark_identities(path.match, path.birth_slot)[1])
         kept.append(int(np.asarray(trace.num_landmarks)[-1]))
         ratios.append(dead_reckoning_ate / ate)
-    return (float(np.median(ratios)), ratios, float(np.median(identities)),
-            float(np.median(kept)))
+        if smooth_motion_model is not None:
+            try:
+                poses, _ = pipeline.offline_path(path, controls, obs, start, params,
+                                                 smooth_motion_model)
+                smoothed.append(dead_reckoning_ate
+                                / metrics.ate_rmse(np.asarray(poses, np.float64), truth))
+            except (RuntimeError, np.linalg.LinAlgError, ValueError):
+                smoothed.append(float("nan"))
+    return VariantRuns(float(np.median(ratios)), ratios, float(np.median(identities)),
+                       float(np.median(kept)), tuple(smoothed))
 
 
 def robot_report(data, robot, seed, filter_keys, variants):
@@ -232,8 +258,8 @@ def robot_report(data, robot, seed, filter_keys, variants):
     for name in variants if filter_keys > 0 else ():
         changed = params._replace(**{field: jnp.asarray(value, jnp.float32) for field, value
                                      in VARIANTS[name](params).items()})
-        median, ratios, identities, kept = filter_variant(changed, inputs, truth, dr_ate,
-                                                          keys)
+        median, ratios, identities, kept, _ = filter_variant(changed, inputs, truth, dr_ate,
+                                                             keys)
         print(f"  {name:20s} ratio median {median:.2f}x "
               f"({', '.join(f'{r:.2f}' for r in ratios)}); identities {identities:.0f}; "
               f"landmarks kept {kept:.0f}", flush=True)

@@ -143,3 +143,33 @@ def test_each_variant_gives_valid_params(name):
                       "pd_0.2": {"detection_probability"},
                       "range_x3_no_delete": {"range_noise", "existence_max",
                                              "existence_delete"}}[name]
+
+
+def test_filter_variant_smooths_each_key_as_the_pipeline_does():
+    """With the log's motion model, ``filter_variant`` also smooths each key's best history:
+    the same ratio as ``pipeline.filter_log(..., smooth=True)`` gives for that key with the
+    same settings (one code path, ``pipeline.offline_path``); without it, no smoothing."""
+    import jax
+
+    from jaxslam import pipeline
+    from jaxslam.types import FilterConfig
+    from test_pipeline import _log  # tests/ is on sys.path (no tests/__init__.py)
+
+    log = _log(30)
+    config = FilterConfig(num_particles=8, max_landmarks=16)
+    params = default_params(range_std_floor=0.05, bearing_std_floor=0.01, max_range=6.0)
+    truth = np.asarray(log.truth_pose)
+    runs = diagnostics.filter_variant(params, pipeline.log_inputs(log, config), truth, 1.0,
+                                      (3, 4), log.motion_model)
+    assert len(runs.ratios) == len(runs.smoothed) == 2
+    for key, smoothed_ratio in zip((3, 4), runs.smoothed):
+        run = pipeline.filter_log(log, config, params, jax.random.PRNGKey(key),
+                                  calibrate=False, smooth=True)
+        # The same run and the same smoother: equal up to float64 rounding.
+        np.testing.assert_allclose(smoothed_ratio, 1.0 / run.metrics["smoothed_ate_rmse"],
+                                   rtol=1e-9)
+    # Exact odometry and observations: both paths stay within centimetres of the truth.
+    assert min(runs.ratios) > 10 and min(runs.smoothed) > 10
+    plain = diagnostics.filter_variant(params, pipeline.log_inputs(log, config), truth, 1.0,
+                                       (3,))
+    assert plain.smoothed == () and plain.ratios[0] == runs.ratios[0]

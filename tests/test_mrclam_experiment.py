@@ -114,3 +114,44 @@ def test_start_params_sets_only_the_existence_cap():
             if name != "existence_max":
                 np.testing.assert_array_equal(np.asarray(getattr(got, name)),
                                               np.asarray(getattr(base, name)), err_msg=name)
+
+
+def test_keys_summary_adds_the_smoothed_ratios_and_counts_failures():
+    line = experiment.keys_summary([2.0, 4.0, 3.0], 14, 3, 100, (5.0, float("nan"), 3.0))
+    assert line.endswith("; smoothed: median 4.00x (5.00 nan 3.00), 1 smoother failures")
+    assert experiment.keys_summary([2.0], 14, 1, 100, (1.5,)).endswith(
+        "; smoothed: median 1.50x (1.50)")
+
+
+def test_fit_gain_is_refused_where_nothing_is_calibrated_blind(capsys):
+    """``--fit-gain`` fits in the blind calibration: refused with ``--no-calibrate`` and with
+    ``--barcodes``, before any data is read."""
+    for extra, message in ((["--no-calibrate", "--command-delay", "0"],
+                            "--fit-gain fits the gains in the calibration"),
+                           (["--barcodes", "both", "--command-delay", "0"],
+                            "--barcodes calibrates and filters only")):
+        with pytest.raises(SystemExit):
+            experiment.main(["--robots", "1", "--data", "/nonexistent", "--fit-gain", *extra])
+        assert message in capsys.readouterr().err
+
+
+def test_fit_gain_reaches_the_calibration(monkeypatch):
+    """``--fit-gain`` hands ``calibrate_gain=True`` to the pipeline's calibration, and
+    without it False (the library's default); the log itself is replaced by a stub."""
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def filter_log(log, config, params, key, **options):
+        seen.append(options["calibration_options"])
+        raise Stop
+
+    monkeypatch.setattr(experiment, "read_mrclam", lambda data, robot: None)
+    monkeypatch.setattr(experiment, "mrclam_steps", lambda raw, max_obs: None)
+    monkeypatch.setattr(experiment, "mrclam_log", lambda raw, steps, **kw: _log(5))
+    monkeypatch.setattr(experiment.pipeline, "filter_log", filter_log)
+    for extra in ([], ["--fit-gain"]):
+        with pytest.raises(Stop):
+            experiment.main(["--robots", "1", *extra])
+    assert seen == [{"calibrate_gain": False}, {"calibrate_gain": True}]
