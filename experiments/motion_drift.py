@@ -84,7 +84,7 @@ from jaxslam.calibration_bootstrap import log_solution, replicate_log  # noqa: E
 from jaxslam.datasets.odometry import odometry_path  # noqa: E402
 from jaxslam.filter import run_filter  # noqa: E402
 from jaxslam.host import in_float64  # noqa: E402
-from jaxslam.motion import with_gain  # noqa: E402
+from jaxslam.motion import control_to_odometry  # noqa: E402
 from jaxslam.self_calibration import group_scales  # noqa: E402
 from jaxslam.smoothing.residuals import wrap  # noqa: E402
 from jaxslam.types import FilterConfig  # noqa: E402
@@ -188,7 +188,8 @@ def drift_against_model(config: FilterConfig, filter_params, model_params, contr
     solution = log_solution(config, jax.random.PRNGKey(seed), filter_params, controls,
                             observations, start)
     # The measured moves are the readings times the model's odometry gains (motion.py).
-    measured = in_float64(with_gain, controls, model_params.odometry_gain)
+    measured = in_float64(control_to_odometry, controls, model_params,
+                          motion_model="odometry")
     if model_params is not filter_params:
         smoothed = _smooth(start, solution.path, measured, observations.z,
                            solution.landmark_of_obs, model_params)
@@ -199,7 +200,8 @@ def drift_against_model(config: FilterConfig, filter_params, model_params, contr
     for index in range(replicates):
         key = jax.random.fold_in(jax.random.PRNGKey(seed), 1000 + index)
         readings, drawn = replicate_log(key, solution, model_params, observations, bursts)
-        moves = in_float64(with_gain, readings, model_params.odometry_gain)
+        moves = in_float64(control_to_odometry, readings, model_params,
+                           motion_model="odometry")
         smoothed = _smooth(start, solution.path, moves, drawn.z, solution.landmark_of_obs,
                            model_params)
         replicate_variance.append(windowed_variance(

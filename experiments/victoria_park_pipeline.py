@@ -47,7 +47,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 from jaxslam import lineage, smoothing
 from jaxslam.host import in_float64
-from jaxslam.motion import with_gain
+from jaxslam.motion import control_to_odometry
 from jaxslam.datasets.odometry import VICTORIA_PARK_VEHICLE, body_rates, integrate_controls
 from jaxslam.datasets.victoria_park import (
     VP_MIN_TRANSLATION,
@@ -663,7 +663,8 @@ def _smooth(params, controls, observations, history: lineage.LineagePath,
     with the ``smooth_path`` keywords ``options`` (default: the legacy set's smoother)."""
     options = smoother_options(LEGACY) if options is None else options
     return smoothing.smooth_lineage(np.zeros(3), jax.tree.map(np.asarray, history),
-                                    in_float64(with_gain, controls, params.odometry_gain),
+                                    in_float64(control_to_odometry, controls, params,
+                                               motion_model="odometry"),
                                     np.asarray(observations.z), params,
                                     visit_gap=visit_gap, **options)
 

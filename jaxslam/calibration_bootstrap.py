@@ -60,8 +60,8 @@ from jaxslam.calibration_residuals import NOISE_GROUPS, typical_stds
 from jaxslam.filter import estimate, run_filter
 from jaxslam.geometry import range_bearing, wrap_angle
 from jaxslam.host import in_float64
-from jaxslam.motion import (burst_variance_factor, nearest_decomposition, odometry_from_poses,
-                            sample_odometry, with_gain)
+from jaxslam.motion import (burst_variance_factor, control_to_odometry, nearest_decomposition,
+                            odometry_from_poses, sample_odometry, with_gain)
 from jaxslam.noise_scale import scaled_noise
 from jaxslam.types import FilterConfig, Observations, Params, default_params
 
@@ -138,7 +138,7 @@ def log_solution(config: FilterConfig, key, params: Params, controls, observatio
                               jnp.asarray(start, jnp.float32), record_lineage=True)
     history = jax.tree.map(np.asarray, lineage.trace_lineage(
         trace.lineage, estimate(final).best_particle))
-    measured = in_float64(with_gain, controls, params.odometry_gain)  # the odometry model's
+    measured = in_float64(control_to_odometry, controls, params, motion_model="odometry")
     try:
         smoothed = smoothing.smooth_lineage(start, history, measured,
                                             np.asarray(observations.z), params,
@@ -195,7 +195,7 @@ def replicate_truth(noise: Params, bursts: bool, controls, observations: Observa
     (what ``total_typical_std`` estimates)."""
     z = np.asarray(observations.z, np.float64)
     valid = np.asarray(observations.valid, bool) & np.all(np.isfinite(z), axis=-1)
-    measured = in_float64(with_gain, controls, noise.odometry_gain)
+    measured = in_float64(control_to_odometry, controls, noise, motion_model="odometry")
     tau = np.asarray(typical_stds(noise, measured, z[valid][:, 0]))
     factor = float(np.sqrt(burst_variance_factor(noise))) if bursts else 1.0
     return tau * np.array([factor, factor, 1.0, 1.0])

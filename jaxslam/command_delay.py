@@ -58,7 +58,7 @@ import numpy as np
 from jaxslam import smoothing
 from jaxslam.filter import run_filter
 from jaxslam.host import in_float64
-from jaxslam.motion import with_gain
+from jaxslam.motion import control_to_odometry
 from jaxslam.types import FilterConfig, Params
 
 # The search's grid [s] and how far from the start it may walk [s]. MRCLAM's robots lag
@@ -307,7 +307,7 @@ def fit_log_command_delay(log_at: Callable, config: FilterConfig, key,
     if valid.sum() < MIN_REVISITS:  # refused before the filter run
         _refuse(int(valid.sum()), "valid observations in the log")
     params = starting_params(config) if params is None else params
-    measured = in_float64(with_gain, controls, params.odometry_gain)
+    measured = in_float64(control_to_odometry, controls, params, motion_model="odometry")
     params = with_typical_heading_std(params, measured, np.asarray(observations.z)[valid][:, 0])
     final, trace = run_filter(config, key, params, controls, observations,
                               jnp.asarray(start, params.rot1_noise.dtype), record_lineage=True)
@@ -322,7 +322,7 @@ def fit_log_command_delay(log_at: Callable, config: FilterConfig, key,
         if moves.shape != (steps, 3):
             raise ValueError(f"log_at({delay}) has {moves.shape[0]} steps, the log at "
                              f"{start_delay} s {steps}: a delayed log must keep the steps")
-        return in_float64(with_gain, moves, params.odometry_gain)  # the measured moves
+        return in_float64(control_to_odometry, moves, params, motion_model="odometry")
 
     return fit_command_delay(moves_at, start, np.asarray(history.pose, np.float64),
                              observations.z, landmark_of_obs, params, step, start_delay,
