@@ -184,14 +184,25 @@ def recovery(truth_params, info, odometry, observations) -> Recovery:
 
 
 def _append_rows(name: str, header: str, rows: str) -> None:
-    """Append ``rows`` to results/self_calibration/``name``, started with ``header`` when
-    the file is new (each call of the script adds its regime's rows)."""
+    """Append ``rows`` to results/self_calibration/``name`` under ``header`` (each call of
+    the script adds its regime's rows). A new file starts with ``header``; a file whose
+    last table has other columns (written by an earlier version of this script) gets
+    ``header`` again first, so no row lands under columns it does not have."""
     table = pathlib.Path("results") / "self_calibration" / name
     table.parent.mkdir(parents=True, exist_ok=True)
-    if not table.exists():
-        table.write_text(header)
-    with table.open("a") as handle:
-        handle.write(rows)
+    text = table.read_text() if table.exists() else ""
+    lines = text.splitlines()
+    column_lines = [lines[i - 1] for i in range(1, len(lines)) if lines[i].startswith("|---")]
+    if not column_lines or column_lines[-1] != header.rstrip("\n").splitlines()[-2]:
+        text += ("\n" if text else "") + header
+    table.write_text(text + rows)
+
+
+def _gain_cell(args) -> str:
+    """The odometry's gains the logs were read with, and whether the calibration fitted
+    gains: e.g. "0.93, 0.9; fitted" or "1, 1; not fitted"."""
+    g_t, g_r = args.odometry_gain
+    return f"{g_t:g}, {g_r:g}; {'fitted' if args.fit_gain else 'not fitted'}"
 
 
 def _stack_fields(records):
@@ -209,15 +220,16 @@ def _write_recovery(args, recovered):
         "group the search scaled; the same with fitted bursts counted in the motion "
         "groups' std (the mixture's rms, ``Recovery.total_ratio``). One block of rows per "
         "call (seed, runs).\n\n"
-        "| seed | odometry x Table 1 | sensor x Table 2 | wobble [m] | group | runs | "
-        "EM / true | stated half-width | truth inside | scaled by the search | "
+        "| seed | odometry x Table 1 | sensor x Table 2 | wobble [m] | log's gains; calibration "
+        "| group | runs | EM / true | stated half-width | truth inside | scaled by the search | "
         "EM / true, bursts counted | truth inside, bursts counted |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     ratio, half, inside, scaled, total, total_inside = _stack_fields(recovered)
     spread = lambda x: f"{np.median(x):.2f} [{x.min():.2f}, {x.max():.2f}]"
     _append_rows("recovery.md", header, "".join(
         f"| {args.seed} | {args.odometry_scale:g} | {args.sensor_scale:g} | "
-        f"{args.wobble:g} | {group} | {len(recovered)} | {spread(ratio[:, g])} | "
+        f"{args.wobble:g} | {_gain_cell(args)} | {group} | {len(recovered)} | "
+        f"{spread(ratio[:, g])} | "
         f"{np.median(half[:, g]):.3f} | {int(inside[:, g].sum())} of {len(recovered)} "
         f"| {int(scaled[:, g].sum())} | {spread(total[:, g])} | "
         f"{int(total_inside[:, g].sum())} of {len(recovered)} |\n"
@@ -250,13 +262,14 @@ def _write_bootstrap(args, booted):
         "Parametric-bootstrap intervals (``calibration_bootstrap``, bias-corrected normal, "
         "95 %) of each group's typical std, bursts counted: the limits and the truth over "
         "EM's estimate, median over runs, and the runs whose truth lies inside.\n\n"
-        "| seed | odometry x Table 1 | sensor x Table 2 | wobble [m] | replicates | group | "
-        "runs | lower / EM | upper / EM | truth / EM | truth inside |\n"
-        "|---|---|---|---|---|---|---|---|---|---|---|\n")
+        "| seed | odometry x Table 1 | sensor x Table 2 | wobble [m] | log's gains; "
+        "calibration | replicates | group | runs | lower / EM | upper / EM | truth / EM | "
+        "truth inside |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     lower, upper, truth, inside = _stack_fields(booted)
     _append_rows("bootstrap.md", header, "".join(
         f"| {args.seed} | {args.odometry_scale:g} | {args.sensor_scale:g} | {args.wobble:g} "
-        f"| {args.bootstrap} | {group} | {len(booted)} | {np.median(lower[:, g]):.2f} | "
+        f"| {_gain_cell(args)} | {args.bootstrap} | {group} | {len(booted)} | {np.median(lower[:, g]):.2f} | "
         f"{np.median(upper[:, g]):.2f} | {np.median(truth[:, g]):.2f} | "
         f"{int(inside[:, g].sum())} of {len(booted)} |\n"
         for g, group in enumerate(NOISE_GROUPS)))
@@ -270,7 +283,7 @@ def offline_row(args, rows, offline) -> str:
         return f"{np.median(errors):.3f} ({int(np.sum(errors > 0.5))})"
 
     return (f"| {args.odometry_scale:g} | {args.sensor_scale:g} | {args.wobble:g} | "
-            f"{len(rows)} | {np.median(rows[:, 0]):.2f} | {cell(rows[:, 1])} | "
+            f"{_gain_cell(args)} | {len(rows)} | {np.median(rows[:, 0]):.2f} | {cell(rows[:, 1])} | "
             f"{cell(offline[:, 0])} | {cell(rows[:, 2])} | {cell(offline[:, 1])} |\n")
 
 
@@ -280,9 +293,10 @@ def _write_offline(args, rows, offline):
         "Final position error [m], median over runs (runs over 0.5 m in brackets): online "
         "(the filter's weighted mean) and offline (the best particle's history smoothed, "
         "missed loops closed). P = %d, proposal %s.\n\n"
-        "| odometry x Table 1 | sensor x Table 2 | wobble [m] | runs | dead reckoning | "
-        "true noise: online | true noise: offline | calibrated: online | calibrated: "
-        "offline |\n|---|---|---|---|---|---|---|---|---|\n" % (args.particles, args.proposal)),
+        "| odometry x Table 1 | sensor x Table 2 | wobble [m] | log's gains; calibration | "
+        "runs | dead reckoning | true noise: online | true noise: offline | calibrated: "
+        "online | calibrated: offline |\n|---|---|---|---|---|---|---|---|---|---|\n"
+        % (args.particles, args.proposal)),
         offline_row(args, rows, offline))
 
 
@@ -292,11 +306,12 @@ def _write_results(args, rows):
     _append_rows("results.md", (
         "Final position error [m], median over runs (runs over 0.5 m in brackets); map "
         "size against trees seen. P = %d, proposal %s.\n\n"
-        "| odometry x Table 1 | sensor x Table 2 | wobble [m] | runs | dead reckoning | "
-        "true noise given | calibrated | calibrated / true (median ratio) | map true / "
-        "calibrated / seen |\n|---|---|---|---|---|---|---|---|---|\n"
+        "| odometry x Table 1 | sensor x Table 2 | wobble [m] | log's gains; calibration | "
+        "runs | dead reckoning | true noise given | calibrated | calibrated / true (median "
+        "ratio) | map true / calibrated / seen |\n|---|---|---|---|---|---|---|---|---|---|\n"
         % (args.particles, args.proposal)),
-        f"| {args.odometry_scale:g} | {args.sensor_scale:g} | {args.wobble:g} | {len(rows)} "
+        f"| {args.odometry_scale:g} | {args.sensor_scale:g} | {args.wobble:g} | "
+        f"{_gain_cell(args)} | {len(rows)} "
         f"| {med[0]:.2f} | {med[1]:.2f} ({int(np.sum(rows[:, 1] > 0.5))}) | {med[2]:.2f} "
         f"({int(np.sum(rows[:, 2] > 0.5))}) | "
         f"{np.median(rows[:, 2] / np.maximum(rows[:, 1], 1e-3)):.2f} | {med[3]:.0f} / "

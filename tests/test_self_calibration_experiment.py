@@ -72,7 +72,8 @@ def test_write_recovery_rows_match_the_header(tmp_path, monkeypatch):
     """Two calls append two blocks of four rows to one table whose rows have the header's
     column count; the counts of runs inside and scaled are per group."""
     monkeypatch.chdir(tmp_path)
-    args = types.SimpleNamespace(seed=500, odometry_scale=4.0, sensor_scale=2.0, wobble=0.3)
+    args = types.SimpleNamespace(seed=500, odometry_scale=4.0, sensor_scale=2.0, wobble=0.3,
+                                 odometry_gain=(1.0, 1.0), fit_gain=False)
     runs = [Recovery(np.array([1.0, 1.5, 0.99, 1.0]), np.full(4, 0.1),
                      np.array([True, False, True, True]), np.array([True, True, False, False]),
                      np.array([1.2, 1.8, 0.99, 1.0]), np.array([False, False, True, True])),
@@ -87,11 +88,11 @@ def test_write_recovery_rows_match_the_header(tmp_path, monkeypatch):
     assert len(rows) == 8
     assert all(row.count("|") == header.count("|") for row in rows)
     heading = [c.strip() for c in rows[0].strip("|").split("|")]
-    assert heading[:6] == ["500", "4", "2", "0.3", "heading", "2"]
-    assert heading[6] == "0.75 [0.50, 1.00]" and heading[8] == "1 of 2" and heading[9] == "1"
-    assert heading[10] == "0.90 [0.60, 1.20]" and heading[11] == "0 of 2"
+    assert heading[:7] == ["500", "4", "2", "0.3", "1, 1; not fitted", "heading", "2"]
+    assert heading[7] == "0.75 [0.50, 1.00]" and heading[9] == "1 of 2" and heading[10] == "1"
+    assert heading[11] == "0.90 [0.60, 1.20]" and heading[12] == "0 of 2"
     bearing = [c.strip() for c in rows[3].strip("|").split("|")]
-    assert bearing[8] == "1 of 2" and bearing[9] == "0"
+    assert bearing[9] == "1 of 2" and bearing[10] == "0"
 
 
 def test_fitted_bursts_count_in_the_total_ratio():
@@ -125,7 +126,8 @@ def test_offline_table_by_hand(tmp_path, monkeypatch):
     has the header's column count."""
     monkeypatch.chdir(tmp_path)
     args = types.SimpleNamespace(odometry_scale=2.0, sensor_scale=5.0, wobble=0.3,
-                                 particles=100, proposal="observation")
+                                 particles=100, proposal="observation",
+                                 odometry_gain=(0.93, 0.9), fit_gain=True)
     # dead reckoning, true online, calibrated online, maps, trees seen
     rows = np.array([[1.0, 3.0, 0.2, 30, 31, 31], [9.0, 0.2, 0.6, 28, 28, 28],
                      [2.0, 1.2, 0.9, 28, 29, 31]])
@@ -135,8 +137,8 @@ def test_offline_table_by_hand(tmp_path, monkeypatch):
              .read_text().splitlines() if line.startswith("|")]
     assert table[2].count("|") == table[0].count("|")
     cells = [c.strip() for c in table[2].strip("|").split("|")]
-    assert cells == ["2", "5", "0.3", "3", "2.00", "1.200 (2)", "0.130 (0)", "0.600 (2)",
-                     "0.300 (1)"]
+    assert cells == ["2", "5", "0.3", "0.93, 0.9; fitted", "3", "2.00", "1.200 (2)",
+                     "0.130 (0)", "0.600 (2)", "0.300 (1)"]
 
 
 def test_offline_error_closes_what_the_online_estimate_misses():
@@ -193,15 +195,33 @@ def test_bootstrap_recovery_and_its_table(tmp_path, monkeypatch):
     np.testing.assert_array_equal(booted.inside, [True, True, True, False])
     np.testing.assert_allclose(booted.lower, [1.1, 0.9, 0.95, 0.8], rtol=1e-12)
     args = types.SimpleNamespace(seed=500, odometry_scale=2.0, sensor_scale=2.0, wobble=0.0,
-                                 bootstrap=20)
+                                 bootstrap=20, odometry_gain=(1.0, 1.0), fit_gain=False)
     _write_bootstrap(args, [booted, booted._replace(inside=np.zeros(4, bool))])
     lines = (tmp_path / "results" / "self_calibration" / "bootstrap.md").read_text().splitlines()
     table = [line for line in lines if line.startswith("|")]
     header, rows = table[0], table[2:]
     assert len(rows) == 4 and all(row.count("|") == header.count("|") for row in rows)
     heading = [c.strip() for c in rows[0].strip("|").split("|")]
-    assert heading == ["500", "2", "2", "0", "20", "heading", "2", "1.10", "1.30", "1.25",
-                       "1 of 2"]
+    assert heading == ["500", "2", "2", "0", "1, 1; not fitted", "20", "heading", "2", "1.10",
+                       "1.30", "1.25", "1 of 2"]
+
+
+def test_a_table_of_other_columns_gets_the_header_again(tmp_path, monkeypatch):
+    """Rows go under their own header: a file whose last table has other columns (an
+    earlier version's) gets the header again before them; the same columns do not."""
+    from experiments.self_calibration import _append_rows
+
+    monkeypatch.chdir(tmp_path)
+    old = "Old.\n\n| a | b |\n|---|---|\n| 1 | 2 |\n"
+    new = "New.\n\n| a | b | c |\n|---|---|---|\n"
+    path = tmp_path / "results" / "self_calibration" / "t.md"
+    path.parent.mkdir(parents=True)
+    path.write_text(old)
+    _append_rows("t.md", new, "| 1 | 2 | 3 |\n")
+    _append_rows("t.md", new, "| 4 | 5 | 6 |\n")
+    assert path.read_text() == old + "\n" + new + "| 1 | 2 | 3 |\n| 4 | 5 | 6 |\n"
+    _append_rows("fresh.md", new, "| 7 | 8 | 9 |\n")
+    assert (path.parent / "fresh.md").read_text() == new + "| 7 | 8 | 9 |\n"
 
 
 def test_logs_read_with_a_gain():
