@@ -155,3 +155,49 @@ def test_fit_gain_reaches_the_calibration(monkeypatch):
         with pytest.raises(Stop):
             experiment.main(["--robots", "1", *extra])
     assert seen == [{"calibrate_gain": False}, {"calibrate_gain": True}]
+
+
+def test_pooled_summary_by_hand():
+    """Six runs online (two at 3x or more) and smoothed with one smoother failure."""
+    line = experiment.pooled_summary(2, [1.0, 3.0, 2.0, 4.0, 2.5, 1.5],
+                                     [3.5, float("nan"), 2.0, 1.0, 3.0, 4.0], 2, 3)
+    assert line == ("robot 2, 2 calibration seeds x 3 filter keys: online median 2.25x "
+                    "(1.00-4.00), 2 of 6 at 3x or more; smoothed median 3.00x (1.00-4.00), "
+                    "3 of 5 at 3x or more")
+
+
+def test_each_seed_calibrates_each_robot(monkeypatch):
+    """``--seed 0 1 --robots 1 2``: the pipeline is called per robot and seed, with
+    PRNGKey(seed), robots in the outer loop."""
+    import jax
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def filter_log(log, config, params, key, **options):
+        seen.append(int(np.asarray(key)[-1]))
+        if len(seen) == 4:
+            raise Stop
+        raise KeyError("next")
+
+    monkeypatch.setattr(experiment, "read_mrclam", lambda data, robot: None)
+    monkeypatch.setattr(experiment, "mrclam_steps", lambda raw, max_obs: None)
+    monkeypatch.setattr(experiment, "mrclam_log", lambda raw, steps, **kw: _log(5))
+    monkeypatch.setattr(experiment.pipeline, "filter_log", filter_log)
+    calls = []
+    original = experiment.robot_seed
+
+    def robot_seed(args, config, robot, seed):
+        calls.append((robot, seed))
+        try:
+            return original(args, config, robot, seed)
+        except KeyError:
+            return (1.0, 1.0, 1.0, 5, 5), [], ()
+
+    monkeypatch.setattr(experiment, "robot_seed", robot_seed)
+    with pytest.raises(Stop):
+        experiment.main(["--robots", "1", "2", "--seed", "0", "1"])
+    assert calls == [(1, 0), (1, 1), (2, 0), (2, 1)] and seen == [0, 1, 0, 1]
+    assert jax.random.PRNGKey(1)[-1] == 1  # what the recorded key's last word reads
