@@ -80,14 +80,9 @@ def nearest_decomposition(moves, reference):
     the reference's (the backward one where cos(rot1 - rot1_ref) < 0), rotations wrapped.
     """
     flip = jnp.cos(moves[..., 0] - reference[..., 0]) < 0.0
-    return jnp.where(flip[..., None], driven_backwards(moves), moves)
-
-
-def driven_backwards(moves):
-    """The other exact decomposition (rot1 + pi, -trans, rot2 + pi) (..., 3) of the same
-    relative pose as ``moves`` (..., 3), rotations wrapped."""
-    return jnp.stack([wrap_angle(moves[..., 0] + jnp.pi), -moves[..., 1],
-                      wrap_angle(moves[..., 2] + jnp.pi)], axis=-1)
+    backward = jnp.stack([wrap_angle(moves[..., 0] + jnp.pi), -moves[..., 1],
+                          wrap_angle(moves[..., 2] + jnp.pi)], axis=-1)
+    return jnp.where(flip[..., None], backward, moves)
 
 
 def apply_odometry(pose, odometry):
@@ -251,27 +246,15 @@ def motion_log_density(pose_prev, pose_next, control, params: Params,
     """log p(pose_next | pose_prev, control) as a density over the pose (x, y, theta).
 
     The move density of Eq. (1) divided by the Jacobian of (rot1, trans, rot2) -> pose, whose
-    determinant is |trans|. Every pose is reached by two moves, (rot1, trans, rot2) and,
-    driving backwards, (rot1 + pi, -trans, rot2 + pi) (``nearest_decomposition``), and the
-    sampler draws both (its translation is Gaussian, negative ones included), so the density
-    of the pose is the sum over the two:
-
-        p(x') = [p(rot1, trans, rot2) + p(rot1 + pi, -trans, rot2 + pi)] / |trans|.
-
-    Counting only the forward move (trans >= 0) puts the true move of a pose drawn a little
-    behind a robot that stood still or crept forwards about pi away from the measured rot1
-    and rot2, so its log density falls by about (pi / sigma_rot)^2 / 2 (about 1e5 at a
-    sigma of 0.007 rad); the backward move is then the one near the measurement. Where
-    |trans| >> sigma_trans the backward term underflows and the sum is the forward density.
-    |trans| is clamped below by ``min_translation`` (the pure-turn regime, where the move
-    density is itself a density over (x, y, theta) up to this constant).
+    determinant is trans: p(x') = p(rot1, trans, rot2) / trans. The translation is clamped
+    below by ``min_translation`` (the pure-turn regime, where the move density is itself a
+    density over (x, y, theta) up to this constant). Negative sampled translations are
+    neglected (their probability is negligible while sigma_trans << trans).
 
     Args:
       pose_prev, pose_next: (..., 3); control: (..., 3). Returns (...,).
     """
     odometry = control_to_odometry(control, params, motion_model)
-    forward = odometry_from_poses(pose_prev, pose_next, params.min_translation)
-    jacobian = jnp.maximum(forward[..., 1], params.min_translation)
-    return (jnp.logaddexp(odometry_log_density(forward, odometry, params),
-                          odometry_log_density(driven_backwards(forward), odometry, params))
-            - jnp.log(jacobian))
+    true_odometry = odometry_from_poses(pose_prev, pose_next, params.min_translation)
+    jacobian = jnp.maximum(true_odometry[..., 1], params.min_translation)
+    return odometry_log_density(true_odometry, odometry, params) - jnp.log(jacobian)

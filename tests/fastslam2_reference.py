@@ -30,9 +30,7 @@ Motion (Geiser et al. 2023, Eq. 1, odometry rot1-trans-rot2)
   Exact motion density over the pose (used by the importance weight): invert x -> (r1, t, r2)
   (r1 = atan2 of the displacement in the previous frame, 0 when t < min_translation;
   r2 = wrap(dtheta - r1)), Gaussian density in odometry space with the stds above, divided by
-  |det J| = t, t clamped below by min_translation [jaxslam ``motion_log_density``]; the
-  pose is also reached by the backward move (r1 + pi, -t, r2 + pi), which the Gaussian
-  sampler draws too, so its density is added (log-sum-exp) before dividing by t.
+  |det J| = t, t clamped below by min_translation [jaxslam ``motion_log_density``].
 
 Measurement (range, bearing), Geiser et al. 2023, Table 2
   h(x, m) = (|m - t|, wrap(atan2(dy, dx) - theta)).
@@ -167,16 +165,12 @@ def odometry_between(pose_prev, pose_next, min_translation):
 
 
 def motion_log_density(pose_prev, pose_next, odometry, params):
-    forward = odometry_between(pose_prev, pose_next, float(params.min_translation))
-    backward = np.array([forward[0] + math.pi, -forward[1], forward[2] + math.pi])
+    true = odometry_between(pose_prev, pose_next, float(params.min_translation))
     std = odometry_std(odometry, params)
-    log_moves = []
-    for true in (forward, backward):
-        diff = true - np.asarray(odometry, np.float64)
-        diff[0], diff[2] = wrap(diff[0]), wrap(diff[2])
-        log_moves.append(float(np.sum(-0.5 * (diff / std) ** 2 - np.log(std) - 0.5 * LOG_2PI)))
-    return float(np.logaddexp(*log_moves)) - math.log(max(forward[1],
-                                                           float(params.min_translation)))
+    diff = true - np.asarray(odometry, np.float64)
+    diff[0], diff[2] = wrap(diff[0]), wrap(diff[2])
+    log_move = float(np.sum(-0.5 * (diff / std) ** 2 - np.log(std) - 0.5 * LOG_2PI))
+    return log_move - math.log(max(true[1], float(params.min_translation)))
 
 
 # ---------------------------------------------------------------------------------------------
