@@ -286,6 +286,29 @@ def test_motion_log_density_integrates_to_one(params):
     assert abs(estimate - 1.0) < 4 * se + 0.01, (estimate, se)
 
 
+def test_motion_log_density_rejects_a_pose_behind_the_start(params):
+    """The model's robot does not drive backwards (``motion_log_density``'s docstring): a
+    robot measured to creep 5 cm forwards (0.007 rad rotation stds) has a pose 4 cm behind
+    its start scored as the forward move (pi, 0.04, 0.002 - pi), about (pi / 0.007)^2 = 2e5
+    (rot1 and rot2 together) below the same displacement ahead, as the reference writes it;
+    the backward move (0, -0.04, 0.002), 3 translation stds off, is not counted."""
+    creeping = params._replace(rot1_noise=jnp.asarray([0.0, 0.0, 0.007]),
+                               trans_noise=jnp.asarray([0.0, 0.0, 0.03]),
+                               rot2_noise=jnp.asarray([0.0, 0.0, 0.007]))
+    table = np.asarray([creeping.rot1_noise, creeping.trans_noise, creeping.rot2_noise])
+    control = np.array([0.0, 0.05, 0.0])
+    prev = np.array([1.0, 2.0, 0.5])
+    step = np.array([0.04 * np.cos(0.5), 0.04 * np.sin(0.5), 0.002])
+    density = jax.jit(motion.motion_log_density)
+    behind = float(density(jnp.asarray(prev), jnp.asarray(prev - step * [1, 1, -1]),
+                           jnp.asarray(control), creeping))
+    ahead = float(density(jnp.asarray(prev), jnp.asarray(prev + step), jnp.asarray(control),
+                          creeping))
+    np.testing.assert_allclose(behind, ref_log_density(prev, prev - step * [1, 1, -1], control,
+                                                       0.01, table), rtol=1e-9)
+    assert ahead - behind > 1.9e5
+
+
 # ---------------------------------------------------------------------------------------------
 # Velocity and Ackermann models against fine-step Euler
 
