@@ -128,10 +128,11 @@ def main(argv=None):
     rows, pooled = [], {}
     for robot in args.robots:
         for seed in args.seed:
-            row, online, smoothed = robot_seed(args, config, robot, seed)
+            row, online_ratios, smoothed_ratios = robot_seed(args, config, robot, seed)
             rows.append(row)
             previous = pooled.get(robot, ((), ()))
-            pooled[robot] = (previous[0] + tuple(online), previous[1] + tuple(smoothed))
+            pooled[robot] = (previous[0] + tuple(online_ratios),
+                             previous[1] + tuple(smoothed_ratios))
     rows = np.asarray(rows)
     smoothed = ("" if args.barcodes != "none"  # the barcode runs are not smoothed
                 else f", smoothed {np.median(rows[:, 2]):.3f} m")
@@ -147,8 +148,8 @@ def robot_seed(args, config: FilterConfig, robot: int, seed: int):
     """Calibrate robot ``robot``'s log with key ``seed``, filter and print (module
     docstring); with ``--filter-keys`` also the keys' runs. Returns (row: dead reckoning
     ATE, filter ATE, smoothed ATE (NaN with --barcodes), landmarks, trees mapped (NaN with
-    --barcodes); the keys' ratios online; the keys' ratios smoothed (empty with
-    --barcodes))."""
+    --barcodes); the keys' ratios online; the keys' ratios smoothed (both empty without
+    --filter-keys, the smoothed ones also with --barcodes))."""
     raw = read_mrclam(args.data, robot)
     steps = mrclam_steps(raw, DEFAULT_MAX_OBS)
     log = mrclam_log(raw, steps)
@@ -216,7 +217,8 @@ def robot_seed(args, config: FilterConfig, robot: int, seed: int):
     keys_config = dataclasses.replace(config,
                                       num_particles=args.filter_particles or args.particles)
     runs = filter_variant(run.params, pipeline.log_inputs(log, keys_config), truth, dr_ate,
-                          range(100, 100 + args.filter_keys), log.motion_model)
+                          range(100, 100 + args.filter_keys), smooth=True,
+                          close_loops=args.close_loops)
     print(keys_summary(runs.ratios, runs.kept, args.filter_keys, keys_config.num_particles,
                        runs.smoothed), flush=True)
     return row, runs.ratios, runs.smoothed
@@ -224,16 +226,22 @@ def robot_seed(args, config: FilterConfig, robot: int, seed: int):
 
 def pooled_summary(robot: int, online, smoothed, num_seeds: int, num_keys: int) -> str:
     """One line on a robot's filter-key runs pooled over its calibration seeds: the median
-    dead reckoning / ATE ratio online and smoothed (NaN: smoother failed, left out), the
-    range, and the share of runs at 3x or more (the acceptance's bar)."""
+    dead reckoning / ATE ratio online and smoothed, the range, and the share of runs at 3x
+    or more (the acceptance's bar). NaN (a smoother that failed) is left out of the
+    smoothed figures and counted."""
     online, smoothed = np.asarray(online, float), np.asarray(smoothed, float)
     line = (f"robot {robot}, {num_seeds} calibration seeds x {num_keys} filter keys: online "
             f"median {np.median(online):.2f}x ({online.min():.2f}-{online.max():.2f}), "
             f"{int(np.sum(online >= 3.0))} of {len(online)} at 3x or more")
+    if not len(smoothed):
+        return line
     kept = smoothed[~np.isnan(smoothed)]
+    failed = len(smoothed) - len(kept)
     if len(kept):
         line += (f"; smoothed median {np.median(kept):.2f}x ({kept.min():.2f}-"
                  f"{kept.max():.2f}), {int(np.sum(kept >= 3.0))} of {len(kept)} at 3x or more")
+    if failed:
+        line += f"; {failed} smoother failures"
     return line
 
 

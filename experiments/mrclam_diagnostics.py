@@ -187,13 +187,14 @@ class VariantRuns(NamedTuple):
     smoothed: tuple = ()
 
 
-def filter_variant(params, inputs, truth, dead_reckoning_ate, keys,
-                   smooth_motion_model: str | None = None) -> VariantRuns:
+def filter_variant(params, inputs, truth, dead_reckoning_ate, keys, smooth: bool = False,
+                   close_loops: bool = False) -> VariantRuns:
     """``VariantRuns`` of filter runs with ``params`` over the PRNG keys ``keys``: inputs =
     ``pipeline.log_inputs``' (config, controls, observations, start); truth (T, 3) Vicon
-    poses; ratio = dead reckoning's ATE over the run's. With ``smooth_motion_model`` (the
-    log's motion model) each run's best history is also smoothed as the pipeline smooths it
-    (NaN for a run whose smoother fails)."""
+    poses; ratio = dead reckoning's ATE over the run's. With ``smooth`` each run's best
+    history is also smoothed as the pipeline smooths it (``pipeline.offline_path`` with the
+    config's motion model, and ``close_loops`` as ``filter_log``'s; NaN for a run whose
+    smoother fails)."""
     config, controls, obs, start = inputs
     ratios, identities, kept, smoothed = [], [], [], []
     for key in keys:
@@ -203,15 +204,16 @@ def filter_variant(params, inputs, truth, dead_reckoning_ate, keys,
         path = trace_lineage(trace.lineage, estimate(final).best_particle)
         identities.append(landmark_identities(path.match, path.birth_slot)[1])
         kept.append(int(np.asarray(trace.num_landmarks)[-1]))
-        ratios.append(dead_reckoning_ate / ate)
-        if smooth_motion_model is not None:
+        ratios.append(float(dead_reckoning_ate / ate))
+        if smooth:
             try:
                 poses, _ = pipeline.offline_path(path, controls, obs, start, params,
-                                                 smooth_motion_model)
-                smoothed.append(dead_reckoning_ate
-                                / metrics.ate_rmse(np.asarray(poses, np.float64), truth))
-            except (RuntimeError, np.linalg.LinAlgError, ValueError):
+                                                 config.motion_model, close_loops=close_loops)
+            except (RuntimeError, np.linalg.LinAlgError, ValueError):  # e.g. a non-finite path
                 smoothed.append(float("nan"))
+                continue
+            smoothed.append(float(dead_reckoning_ate
+                                  / metrics.ate_rmse(np.asarray(poses, np.float64), truth)))
     return VariantRuns(float(np.median(ratios)), ratios, float(np.median(identities)),
                        float(np.median(kept)), tuple(smoothed))
 

@@ -186,16 +186,21 @@ def recovery(truth_params, info, odometry, observations) -> Recovery:
 def _append_rows(name: str, header: str, rows: str) -> None:
     """Append ``rows`` to results/self_calibration/``name`` under ``header`` (each call of
     the script adds its regime's rows). A new file starts with ``header``; a file whose
-    last table has other columns (written by an earlier version of this script) gets
-    ``header`` again first, so no row lands under columns it does not have."""
+    last table has another header (other columns, particles or proposal: an earlier call's
+    or an earlier version's) gets ``header`` again first, so no row lands under a header
+    that does not describe it. The file is only appended to, so earlier rows are never
+    rewritten."""
     table = pathlib.Path("results") / "self_calibration" / name
     table.parent.mkdir(parents=True, exist_ok=True)
     text = table.read_text() if table.exists() else ""
     lines = text.splitlines()
-    column_lines = [lines[i - 1] for i in range(1, len(lines)) if lines[i].startswith("|---")]
-    if not column_lines or column_lines[-1] != header.rstrip("\n").splitlines()[-2]:
-        text += ("\n" if text else "") + header
-    table.write_text(text + rows)
+    separators = [i for i, line in enumerate(lines) if line.startswith("|---")]
+    current = "\n".join(lines[:separators[-1] + 1]) if separators else ""
+    prefix = "\n" if text and not text.endswith("\n") else ""
+    if not current.endswith(header.rstrip("\n")):
+        prefix += ("\n" if text else "") + header
+    with table.open("a") as handle:
+        handle.write(prefix + rows)
 
 
 def _gain_cell(args) -> str:
@@ -269,8 +274,8 @@ def _write_bootstrap(args, booted):
     lower, upper, truth, inside = _stack_fields(booted)
     _append_rows("bootstrap.md", header, "".join(
         f"| {args.seed} | {args.odometry_scale:g} | {args.sensor_scale:g} | {args.wobble:g} "
-        f"| {_gain_cell(args)} | {args.bootstrap} | {group} | {len(booted)} | {np.median(lower[:, g]):.2f} | "
-        f"{np.median(upper[:, g]):.2f} | {np.median(truth[:, g]):.2f} | "
+        f"| {_gain_cell(args)} | {args.bootstrap} | {group} | {len(booted)} | "
+        f"{np.median(lower[:, g]):.2f} | {np.median(upper[:, g]):.2f} | {np.median(truth[:, g]):.2f} | "
         f"{int(inside[:, g].sum())} of {len(booted)} |\n"
         for g, group in enumerate(NOISE_GROUPS)))
 
@@ -283,8 +288,8 @@ def offline_row(args, rows, offline) -> str:
         return f"{np.median(errors):.3f} ({int(np.sum(errors > 0.5))})"
 
     return (f"| {args.odometry_scale:g} | {args.sensor_scale:g} | {args.wobble:g} | "
-            f"{_gain_cell(args)} | {len(rows)} | {np.median(rows[:, 0]):.2f} | {cell(rows[:, 1])} | "
-            f"{cell(offline[:, 0])} | {cell(rows[:, 2])} | {cell(offline[:, 1])} |\n")
+            f"{_gain_cell(args)} | {len(rows)} | {np.median(rows[:, 0]):.2f} | "
+            f"{cell(rows[:, 1])} | {cell(offline[:, 0])} | {cell(rows[:, 2])} | {cell(offline[:, 1])} |\n")
 
 
 def _write_offline(args, rows, offline):

@@ -253,15 +253,17 @@ def motion_log_density(pose_prev, pose_next, control, params: Params,
     The robot of this density does not drive backwards: the true move of a pose is its
     forward decomposition (trans >= 0, ``odometry_from_poses``), so a pose a little behind a
     robot measured to stand still or creep forwards (farther than ``min_translation``) has
-    rot1 and rot2 about pi from the measured ones and a log density about (pi / sigma_rot)^2
-    / 2 lower (about 1e5 at sigma_rot = 0.007 rad): practically zero. The sampler's Gaussian
+    rot1 and rot2 about pi from the measured ones and a log density about
+    (pi / sigma_rot1)^2 / 2 + (pi / sigma_rot2)^2 / 2 lower (about 2e5 at 0.007 rad each):
+    practically zero. The sampler's Gaussian
     translation does draw such poses, which this density then rejects. That is right for
     robots that never reverse (no MRCLAM reading has a negative velocity), and measured
     better than counting the backward decomposition too (docs/results.md, mrclam,
     twenty-seventh session). Its cost: in a step where every particle's proposal lies behind
     (the observations pull the pose back), the filter's log evidence falls by about that
     much, and such single steps decide the log marginal likelihood of a run (MRCLAM robot 1:
-    -95,000 nats a step, a spread of about 290,000 nats over filter keys at one setting).
+    about -95,000 nats a step, a spread of about 290,000 nats over filter keys at one
+    setting).
 
     Args:
       pose_prev, pose_next: (..., 3); control: (..., 3). Returns (...,).

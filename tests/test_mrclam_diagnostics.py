@@ -146,7 +146,7 @@ def test_each_variant_gives_valid_params(name):
 
 
 def test_filter_variant_smooths_each_key_as_the_pipeline_does():
-    """With the log's motion model, ``filter_variant`` also smooths each key's best history:
+    """With ``smooth``, ``filter_variant`` also smooths each key's best history:
     the same ratio as ``pipeline.filter_log(..., smooth=True)`` gives for that key with the
     same settings (one code path, ``pipeline.offline_path``); without it, no smoothing."""
     import jax
@@ -160,7 +160,7 @@ def test_filter_variant_smooths_each_key_as_the_pipeline_does():
     params = default_params(range_std_floor=0.05, bearing_std_floor=0.01, max_range=6.0)
     truth = np.asarray(log.truth_pose)
     runs = diagnostics.filter_variant(params, pipeline.log_inputs(log, config), truth, 1.0,
-                                      (3, 4), log.motion_model)
+                                      (3, 4), smooth=True)
     assert len(runs.ratios) == len(runs.smoothed) == 2
     for key, smoothed_ratio in zip((3, 4), runs.smoothed):
         run = pipeline.filter_log(log, config, params, jax.random.PRNGKey(key),

@@ -158,17 +158,48 @@ def test_fit_gain_reaches_the_calibration(monkeypatch):
 
 
 def test_pooled_summary_by_hand():
-    """Six runs online (two at 3x or more) and smoothed with one smoother failure."""
+    """Six runs online (two at 3x or more) and smoothed with one smoother failure, which
+    is left out of the smoothed figures and counted."""
     line = experiment.pooled_summary(2, [1.0, 3.0, 2.0, 4.0, 2.5, 1.5],
                                      [3.5, float("nan"), 2.0, 1.0, 3.0, 4.0], 2, 3)
     assert line == ("robot 2, 2 calibration seeds x 3 filter keys: online median 2.25x "
                     "(1.00-4.00), 2 of 6 at 3x or more; smoothed median 3.00x (1.00-4.00), "
-                    "3 of 5 at 3x or more")
+                    "3 of 5 at 3x or more; 1 smoother failures")
 
 
-def test_each_seed_calibrates_each_robot(monkeypatch):
-    """``--seed 0 1 --robots 1 2``: the pipeline is called per robot and seed, with
-    PRNGKey(seed), robots in the outer loop."""
+def test_each_seed_calibrates_each_robot_and_the_keys_are_pooled(monkeypatch, capsys):
+    """``--seed 0 1 --robots 1 2 --filter-keys 2``: one calibration per robot and seed,
+    robots in the outer loop, and each robot's keys pooled over its seeds into one line
+    (the per-seed runs stubbed: robot r, seed s gives ratios r + s and r + s + 1 online,
+    twice that smoothed, with one smoother failure for robot 2, seed 1)."""
+    calls = []
+
+    def robot_seed(args, config, robot, seed):
+        calls.append((robot, seed))
+        online = [robot + seed, robot + seed + 1.0]
+        smoothed = [2 * r for r in online]
+        if (robot, seed) == (2, 1):
+            smoothed[1] = float("nan")
+        return (4.0, 2.0, 1.0, 10, 5), online, smoothed
+
+    monkeypatch.setattr(experiment, "robot_seed", robot_seed)
+    experiment.main(["--robots", "1", "2", "--seed", "0", "1", "--filter-keys", "2"])
+    assert calls == [(1, 0), (1, 1), (2, 0), (2, 1)]
+    out = capsys.readouterr().out.splitlines()
+    # Robot 1: online 1, 2, 2, 3 (median 2), smoothed 2, 4, 4, 6; robot 2: online 2, 3, 3,
+    # 4, smoothed 4, 6, 6 and a failure.
+    assert out[-2] == experiment.pooled_summary(1, [1, 2, 2, 3], [2, 4, 4, 6], 2, 2)
+    assert out[-1] == experiment.pooled_summary(2, [2, 3, 3, 4], [4, 6, 6, float("nan")],
+                                                2, 2)
+    assert out[-2].startswith("robot 1, 2 calibration seeds x 2 filter keys: online median "
+                              "2.00x (1.00-3.00), 1 of 4 at 3x or more; smoothed median 4.00x")
+    assert out[-1].endswith("3 of 3 at 3x or more; 1 smoother failures")
+
+
+def test_each_seed_reaches_the_pipeline_with_its_key(monkeypatch):
+    """``robot_seed`` calibrates with PRNGKey(seed), and passes ``--fit-gain`` on."""
+    import types
+
     import jax
 
     seen = []
@@ -177,27 +208,19 @@ def test_each_seed_calibrates_each_robot(monkeypatch):
         pass
 
     def filter_log(log, config, params, key, **options):
-        seen.append(int(np.asarray(key)[-1]))
-        if len(seen) == 4:
-            raise Stop
-        raise KeyError("next")
+        seen.append((np.asarray(key).tolist(), options["calibration_options"]))
+        raise Stop
 
     monkeypatch.setattr(experiment, "read_mrclam", lambda data, robot: None)
     monkeypatch.setattr(experiment, "mrclam_steps", lambda raw, max_obs: None)
     monkeypatch.setattr(experiment, "mrclam_log", lambda raw, steps, **kw: _log(5))
     monkeypatch.setattr(experiment.pipeline, "filter_log", filter_log)
-    calls = []
-    original = experiment.robot_seed
-
-    def robot_seed(args, config, robot, seed):
-        calls.append((robot, seed))
-        try:
-            return original(args, config, robot, seed)
-        except KeyError:
-            return (1.0, 1.0, 1.0, 5, 5), [], ()
-
-    monkeypatch.setattr(experiment, "robot_seed", robot_seed)
-    with pytest.raises(Stop):
-        experiment.main(["--robots", "1", "2", "--seed", "0", "1"])
-    assert calls == [(1, 0), (1, 1), (2, 0), (2, 1)] and seen == [0, 1, 0, 1]
-    assert jax.random.PRNGKey(1)[-1] == 1  # what the recorded key's last word reads
+    args = types.SimpleNamespace(data="unused", command_delay="auto", seed=[0, 7],
+                                 barcodes="none", existence_max=None, no_calibrate=False,
+                                 close_loops=False, fit_gain=True, filter_keys=0,
+                                 particles=100, filter_particles=None)
+    for seed in (0, 7):
+        with pytest.raises(Stop):
+            experiment.robot_seed(args, FilterConfig(), 1, seed)
+    assert seen == [(np.asarray(jax.random.PRNGKey(seed)).tolist(), {"calibrate_gain": True})
+                    for seed in (0, 7)]

@@ -207,8 +207,10 @@ def test_bootstrap_recovery_and_its_table(tmp_path, monkeypatch):
 
 
 def test_a_table_of_other_columns_gets_the_header_again(tmp_path, monkeypatch):
-    """Rows go under their own header: a file whose last table has other columns (an
-    earlier version's) gets the header again before them; the same columns do not."""
+    """Rows go under their own header: a file whose last table has another header (other
+    columns, or the same columns under another intro) gets the header again before them;
+    the same header does not. A last line without its newline, and an empty file, are
+    handled."""
     from experiments.self_calibration import _append_rows
 
     monkeypatch.chdir(tmp_path)
@@ -222,6 +224,18 @@ def test_a_table_of_other_columns_gets_the_header_again(tmp_path, monkeypatch):
     assert path.read_text() == old + "\n" + new + "| 1 | 2 | 3 |\n| 4 | 5 | 6 |\n"
     _append_rows("fresh.md", new, "| 7 | 8 | 9 |\n")
     assert (path.parent / "fresh.md").read_text() == new + "| 7 | 8 | 9 |\n"
+    # The same columns under another intro (another P or proposal) get the header again.
+    other = "Other P.\n\n| a | b | c |\n|---|---|---|\n"
+    _append_rows("fresh.md", other, "| 1 | 1 | 1 |\n")
+    assert (path.parent / "fresh.md").read_text() == (new + "| 7 | 8 | 9 |\n\n" + other
+                                                      + "| 1 | 1 | 1 |\n")
+    # A last row without its newline keeps its own line; an empty file gets the header.
+    (path.parent / "cut.md").write_text(new + "| 1 | 2 | 3 |")
+    _append_rows("cut.md", new, "| 4 | 5 | 6 |\n")
+    assert (path.parent / "cut.md").read_text() == new + "| 1 | 2 | 3 |\n| 4 | 5 | 6 |\n"
+    (path.parent / "empty.md").write_text("")
+    _append_rows("empty.md", new, "| 4 | 5 | 6 |\n")
+    assert (path.parent / "empty.md").read_text() == new + "| 4 | 5 | 6 |\n"
 
 
 def test_logs_read_with_a_gain():
