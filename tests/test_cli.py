@@ -671,8 +671,8 @@ def test_run_and_calibrate_with_the_commands_lag(tmp_path, monkeypatch, capsys):
                            "--no-scale-search", *small])
         out = capsys.readouterr().out
         assert status == 0 and "commands +0.270 s late" in out
-        assert "--command-delay 0.270" in out  # how to reuse the file
-        assert "run with --command-delay 0.270" in (tmp_path / "params.toml").read_text()
+        assert "--command-delay 0.27)" in out  # how to reuse the file (the delay exactly)
+        assert "run with --command-delay 0.27\n" in (tmp_path / "params.toml").read_text()
         # the saved settings reused at the lag they were calibrated at
         status = cli.main(["run", "--data", str(tmp_path / "log.npz"), "--out",
                            str(tmp_path / "again"), "--params", str(tmp_path / "params.toml"),
@@ -705,3 +705,17 @@ def test_run_and_calibrate_with_the_commands_lag(tmp_path, monkeypatch, capsys):
         assert "expected 'auto' or a finite number of seconds" in capsys.readouterr().err
     finally:
         _reset_cache_config()
+
+
+def test_the_saved_delay_note_carries_the_delay_to_the_last_digit():
+    """The params file's note suggests ``--command-delay`` with the fitted delay exactly
+    (``repr``), which the option reads back to the same float; none without a delay."""
+    from jaxslam.cli.logs import _delay_note
+    from jaxslam.command_delay import command_delay_argument
+
+    delay = 0.23205342817306519
+    note = _delay_note(delay)
+    assert note.startswith("; at commands 0.232 s late: run with --command-delay ")
+    assert command_delay_argument(note.rsplit(" ", 1)[-1]) == delay
+    assert _delay_note(np.float32(0.25)).endswith("--command-delay 0.25")
+    assert _delay_note(None) == ""

@@ -332,9 +332,12 @@ def _filter_log(args, log):
 
 
 def _delay_note(delay) -> str:
-    """The params file's note of the command delay they were calibrated at ("" for none)."""
+    """The params file's note of the command delay they were calibrated at ("" for none).
+    The command it suggests carries the delay to the last digit (``repr``): the moves are
+    rebuilt from the commands at that delay, and a delay rounded to the millisecond gives
+    slightly other moves, which a long run does not forgive."""
     return ("" if delay is None else
-            f"; at commands {delay:.3f} s late: run with --command-delay {delay:.3f}")
+            f"; at commands {delay:.3f} s late: run with --command-delay {float(delay)!r}")
 
 
 def _calibration_options(args) -> dict:
@@ -381,7 +384,7 @@ def cmd_calibrate(args) -> int:
     saved = pipeline.save_params(args.out, params, comment=f"calibrated from {args.data} by "
                                  f"jaxslam calibrate ({info.verdict})" + _delay_note(delay),
                                  sensor_noise_calibrated=pipeline.sensor_noise_calibrated(info))
-    again = "" if delay is None else f" --command-delay {delay:.3f}"
+    again = "" if delay is None else f" --command-delay {float(delay)!r}"
     print(f"wrote {saved} (use it with: jaxslam run --data {args.data} --params {saved}"
           f"{again})")
     if args.bootstrap:
