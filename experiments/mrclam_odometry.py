@@ -45,8 +45,8 @@ DEFAULT_DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" /
 def true_moves(truth, commanded, min_translation: float) -> np.ndarray:
     """(T - 1, 3) the moves between consecutive truth poses (T, 3), each written in the
     decomposition nearest the commanded move of the same step (``commanded`` (T - 1, 3))."""
-    moves = in_float64(lambda a, b: odometry_from_poses(a, b, min_translation),
-                       truth[:-1], truth[1:])
+    moves = in_float64(odometry_from_poses, truth[:-1], truth[1:],
+                       min_translation=min_translation)
     return in_float64(nearest_decomposition, moves, commanded)
 
 

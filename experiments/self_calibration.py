@@ -49,7 +49,7 @@ from jaxslam.calibration_bootstrap import bootstrap_intervals, burst_rms_factor
 from jaxslam.calibration_residuals import NOISE_GROUPS, typical_stds
 from jaxslam.datasets.odometry import odometry_path
 from jaxslam.filter import estimate, run_filter
-from jaxslam.motion import with_gain
+from jaxslam.motion import control_to_odometry, with_gain
 from jaxslam.pipeline import offline_path
 from jaxslam.self_calibration import (calibrate_params, em_typical_std,
                                       group_scales, starting_params)
@@ -378,7 +378,7 @@ def main(argv=None):
         rows.append((dr_error, true_error, cal_error, true_map, cal_map, seen))
         # The true noise's typical std over the true model's moves (the readings times
         # the true gains).
-        true_moves = with_gain(jnp.asarray(controls), truth_params.odometry_gain)
+        true_moves = control_to_odometry(jnp.asarray(controls), truth_params, "odometry")
         recovered.append(recovery(truth_params, info, true_moves, obs))
         if args.bootstrap:
             start = time.perf_counter()

@@ -35,9 +35,10 @@ uses is the reading times the gains g = ``params.odometry_gain`` = (g_t, g_r),
 
     u = (g_r rot1_read, g_t trans_read, g_r rot2_read),
 
-and Eq. (1)'s noise is around u, with its std evaluated at u (``control_to_odometry``, where
-the filter turns a reading into a move; host code that smooths odometry readings calls
-``with_gain`` itself). g = (1, 1) (the default) leaves every reading as it is, bit
+and Eq. (1)'s noise is around u, with its std evaluated at u (``control_to_odometry``, the
+one place a reading becomes a move, in the filter and, through ``host.in_float64``, in the
+host code that smooths readings; ``with_gain`` alone is for code that fits or inverts the
+gains). g = (1, 1) (the default) leaves every reading as it is, bit
 for bit; ``calibrate_params`` fits g from the log (``odometry_gain.gain_update``).
 
 Shapes: ``pose`` (..., 3), ``control`` (..., 3), ``odometry`` (..., 3) = (rot1, trans, rot2).
