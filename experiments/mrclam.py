@@ -7,11 +7,16 @@ sensor settings from that robot's odometry and measurements alone, then filters;
 scores (ATE of the online mean path and of the smoothed one, against dead reckoning).
 
     python experiments/mrclam.py [--robots 1 2 3 4 5] [--particles 100] [--close-loops]
-                                 [--filter-keys N] [--fit-gain]
+                                 [--filter-keys N] [--fit-gain] [--em-iterations N]
+                                 [--proposal observation|mixture] [--mixture-ratio PHI]
 
 ``--filter-keys N`` runs the calibrated settings with N more filter keys and prints, for each,
 the ratio of dead reckoning's ATE to the online path's and to the smoothed best history's.
 ``--fit-gain`` also fits the odometry's gains (``calibrate_params(calibrate_gain=True)``).
+``--em-iterations N`` caps EM's filter runs (the library's 5 by default); ``--proposal
+mixture --mixture-ratio PHI`` runs the calibration and the filter with the mixture proposal
+(a share 1 - PHI of the particles drawn from the motion model). Both are diagnostics of the
+calibration on these logs, not settings chosen for them.
 ``--seed 0 1 2 3`` calibrates each robot once per key; with ``--filter-keys`` the keys' ratios
 are then pooled per robot over the calibrations as well. A robot's result is a draw over
 both: a float-rounding change in the filter alone moved robot 1's median over six filter keys
@@ -107,7 +112,25 @@ def main(argv=None):
                         help="particles of the --filter-keys runs (default: --particles); "
                              "the calibration and the key-0 run keep --particles, so this "
                              "measures what a larger compute budget gives the same settings")
+    parser.add_argument("--proposal", choices=("observation", "mixture"), default="observation",
+                        help="the filter's proposal in the calibration and the runs "
+                             "(default: observation, as in the library); 'mixture' draws a "
+                             "share 1 - phi of the particles from the motion model")
+    parser.add_argument("--mixture-ratio", type=float, default=None,
+                        help="phi of --proposal mixture, the probability of an observation "
+                             "draw (default: the library's Params.mixture_ratio)")
+    parser.add_argument("--em-iterations", type=int, default=None,
+                        help="EM's filter runs in the calibration (calibrate_params' "
+                             "iterations; default: the library's 5); 2 returns the settings "
+                             "of EM's first M-step")
     args = parser.parse_args(argv)
+    if args.em_iterations is not None and (args.em_iterations < 1 or args.no_calibrate):
+        parser.error(f"--em-iterations {args.em_iterations}: expected 1 or more, and a "
+                     "calibration (not with --no-calibrate)")
+    if args.mixture_ratio is not None and (args.proposal != "mixture"
+                                           or not 0.0 <= args.mixture_ratio <= 1.0):
+        parser.error(f"--mixture-ratio {args.mixture_ratio}: expected a probability in [0, 1] "
+                     "with --proposal mixture")
     if args.filter_keys < 0:
         parser.error(f"--filter-keys {args.filter_keys}: expected 0 or more")
     if args.filter_particles is not None and args.filter_particles < 1:
@@ -124,7 +147,8 @@ def main(argv=None):
         parser.error("--command-delay auto fits the delay with the blind calibration: give "
                      "--command-delay 0 (or a number of seconds) with --no-calibrate or "
                      "--barcodes")
-    config = FilterConfig(num_particles=args.particles, max_landmarks=64, max_obs=8)
+    config = FilterConfig(num_particles=args.particles, max_landmarks=64, max_obs=8,
+                          proposal=args.proposal)
     rows, pooled = [], {}
     for robot in args.robots:
         for seed in args.seed:
@@ -181,11 +205,12 @@ def robot_seed(args, config: FilterConfig, robot: int, seed: int):
                   flush=True)
         return (dr_ate, ate, np.nan, landmarks, np.nan), ratios, ()
     run = pipeline.filter_log(log, config, start_params(config, args.existence_max,
-                                                        not args.no_calibrate),
+                                                        not args.no_calibrate,
+                                                        args.mixture_ratio),
                               jax.random.PRNGKey(seed),
                               calibrate=not args.no_calibrate, smooth=True,
                               close_loops=args.close_loops,
-                              calibration_options={"calibrate_gain": args.fit_gain},
+                              calibration_options=calibration_options(args),
                               command_delay="auto" if delay == "auto" else None)
     seconds = time.perf_counter() - start
     if run.delay_fit is not None:
@@ -261,14 +286,26 @@ def keys_summary(ratios, kept, num_keys: int, particles: int, smoothed=()) -> st
     return line
 
 
-def start_params(config: FilterConfig, existence_max: float | None, calibrate: bool = True):
+def calibration_options(args) -> dict:
+    """``calibrate_params`` keywords from the options: ``calibrate_gain`` always, and
+    ``iterations`` when ``--em-iterations`` is given."""
+    options = {"calibrate_gain": args.fit_gain}
+    if getattr(args, "em_iterations", None) is not None:
+        options["iterations"] = args.em_iterations
+    return options
+
+
+def start_params(config: FilterConfig, existence_max: float | None, calibrate: bool = True,
+                 mixture_ratio: float | None = None):
     """The settings the pipeline starts from (``calibrate``: ``starting_params``, else
-    ``default_params``), with ``existence_max`` when given; None (the pipeline's own
-    default) when neither is changed."""
-    if existence_max is None:
+    ``default_params``), with ``existence_max`` and ``mixture_ratio`` where given; None (the
+    pipeline's own default) when neither is changed."""
+    overrides = {name: value for name, value in (("existence_max", existence_max),
+                                                 ("mixture_ratio", mixture_ratio))
+                 if value is not None}
+    if not overrides:
         return None
-    return (starting_params if calibrate else default_params)(config,
-                                                              existence_max=existence_max)
+    return (starting_params if calibrate else default_params)(config, **overrides)
 
 
 def barcode_calibration(log, obs_landmark, config: FilterConfig, seed: int,

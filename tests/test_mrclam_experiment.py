@@ -151,10 +151,63 @@ def test_fit_gain_reaches_the_calibration(monkeypatch):
     monkeypatch.setattr(experiment, "mrclam_steps", lambda raw, max_obs: None)
     monkeypatch.setattr(experiment, "mrclam_log", lambda raw, steps, **kw: _log(5))
     monkeypatch.setattr(experiment.pipeline, "filter_log", filter_log)
-    for extra in ([], ["--fit-gain"]):
+    for extra in ([], ["--fit-gain"], ["--em-iterations", "2"]):
         with pytest.raises(Stop):
             experiment.main(["--robots", "1", *extra])
-    assert seen == [{"calibrate_gain": False}, {"calibrate_gain": True}]
+    assert seen == [{"calibrate_gain": False}, {"calibrate_gain": True},
+                    {"calibrate_gain": False, "iterations": 2}]
+
+
+def test_em_iterations_is_refused_below_one_or_without_a_calibration(capsys):
+    for extra in (["--em-iterations", "0"],
+                  ["--em-iterations", "2", "--no-calibrate", "--command-delay", "0"]):
+        with pytest.raises(SystemExit):
+            experiment.main(["--robots", "1", "--data", "/nonexistent", *extra])
+        assert "expected 1 or more, and a calibration" in capsys.readouterr().err
+
+
+def test_proposal_and_mixture_ratio_reach_the_pipeline(monkeypatch):
+    """``--proposal mixture --mixture-ratio 0.9``: the pipeline gets a config with the
+    mixture proposal and starting settings with phi 0.9 (every other field the
+    ``starting_params`` one); without the options the library's proposal and None (the
+    pipeline's own starting settings)."""
+    from jaxslam.self_calibration import starting_params
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def filter_log(log, config, params, key, **options):
+        seen.append((config.proposal, params))
+        raise Stop
+
+    monkeypatch.setattr(experiment, "read_mrclam", lambda data, robot: None)
+    monkeypatch.setattr(experiment, "mrclam_steps", lambda raw, max_obs: None)
+    monkeypatch.setattr(experiment, "mrclam_log", lambda raw, steps, **kw: _log(5))
+    monkeypatch.setattr(experiment.pipeline, "filter_log", filter_log)
+    for extra in ([], ["--proposal", "mixture", "--mixture-ratio", "0.9"]):
+        with pytest.raises(Stop):
+            experiment.main(["--robots", "1", *extra])
+    assert seen[0] == ("observation", None)
+    proposal, params = seen[1]
+    assert proposal == "mixture"
+    base = starting_params(FilterConfig(proposal="mixture"))
+    assert float(params.mixture_ratio) == pytest.approx(0.9)
+    for name in base._fields:
+        if name != "mixture_ratio":
+            np.testing.assert_array_equal(np.asarray(getattr(params, name)),
+                                          np.asarray(getattr(base, name)), err_msg=name)
+
+
+def test_mixture_ratio_is_refused_without_the_mixture_or_outside_0_1(capsys):
+    for extra in (["--mixture-ratio", "0.9"],
+                  ["--proposal", "mixture", "--mixture-ratio", "1.5"],
+                  ["--proposal", "mixture", "--mixture-ratio", "-0.1"]):
+        with pytest.raises(SystemExit):
+            experiment.main(["--robots", "1", "--data", "/nonexistent", *extra])
+        assert "expected a probability in [0, 1] with --proposal mixture" in (
+            capsys.readouterr().err)
 
 
 def test_pooled_summary_by_hand():
@@ -218,7 +271,7 @@ def test_each_seed_reaches_the_pipeline_with_its_key(monkeypatch):
     args = types.SimpleNamespace(data="unused", command_delay="auto", seed=[0, 7],
                                  barcodes="none", existence_max=None, no_calibrate=False,
                                  close_loops=False, fit_gain=True, filter_keys=0,
-                                 particles=100, filter_particles=None)
+                                 particles=100, filter_particles=None, mixture_ratio=None)
     for seed in (0, 7):
         with pytest.raises(Stop):
             experiment.robot_seed(args, FilterConfig(), 1, seed)
