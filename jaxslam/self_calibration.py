@@ -53,7 +53,11 @@ estimation use, with the particle filter as the E-step's data associator:
       5. monitor EM by the particle filter's own log marginal likelihood estimate (the sum
          of ``Trace.log_evidence``); when the iterations do not converge, return the
          settings whose run scored best (an iteration that broke the association scores
-         low); stop once the last ``patience`` runs did not beat the best run before them
+         low), where a later run counts as better only when its per-step log evidence beats
+         the best's by a one-sided t test over blocks of steps (``significance``,
+         ``score_comparison``): one step of -1e5 nats (a creeping robot's particles all
+         drawn behind it) or the runs' chance no longer picks the iterate; stop once the
+         last ``patience`` runs did not beat the best run before them
          (the first run never counts as best, and no stop while every run overflowed the map,
          as no likelihood ranks such runs; ``_stalled``): a Monte Carlo EM's likelihood
          need not rise every iteration, but on the logs measured (docs/results.md,
@@ -141,6 +145,7 @@ from jaxslam.noise_fit import (MIN_MOVES, MIN_OBSERVATIONS, MIN_SIGHTINGS, STD_F
                                group_relative_errors, measured_radii, motion_noise_update,
                                observation_noise_update, radius_noise_from_history,
                                radius_noise_relative_error)
+from jaxslam.score_comparison import significantly_better
 from jaxslam.types import FilterConfig, Observations, Params, default_params
 
 START_DETECTION = 0.1  # the first iteration's detection probability (``starting_params``)
@@ -596,8 +601,11 @@ def _stated_errors(m_steps: list, source, steps: int) -> tuple[dict, dict, bool 
     return relative_std, samples, bursts_fitted
 
 
-def _best_run(objective, dropped, fill_step=None) -> int:
-    """Index of the filter run with the highest log marginal likelihood.
+def _best_run(objective, dropped, fill_step=None, evidence=None,
+              level: float | None = None) -> int:
+    """Index of the filter run with the highest log marginal likelihood; with ``evidence``
+    and ``level``, of the last run whose likelihood was significantly higher than the best
+    before it.
 
     EM raises the marginal likelihood while the E-step's association holds; when it did not
     converge, the settings whose own filter run scored best are returned. The first run used
@@ -615,6 +623,13 @@ def _best_run(objective, dropped, fill_step=None) -> int:
     ran 34.8 m off GPS (in-sample: this rule was written after seeing it; docs/results.md).
     objective (R,), dropped (R,) births each run dropped, fill_step (R,) each run's first
     step that dropped one (T when none).
+
+    With ``evidence`` (R arrays (T,), each run's ``Trace.log_evidence``) and ``level``, the
+    runs a likelihood ranks are taken in order and a run replaces the best so far only when
+    its per-step log evidence beats the best's by ``score_comparison.significantly_better``
+    at ``level`` (one-sided; a t test over blocks of steps): a higher sum that one or two
+    steps make, or that the runs' chance could make, does not count. Among runs no
+    likelihood ranks (every one overflowed) the rule above stands.
     """
     scores = np.asarray(objective, np.float64)
     scores[0] = -np.inf if len(scores) > 1 else scores[0]
@@ -630,7 +645,14 @@ def _best_run(objective, dropped, fill_step=None) -> int:
         scores = np.where(full, -np.inf, scores)
     if not np.any(np.isfinite(scores)):
         return len(scores) - 1
-    return int(np.argmax(np.where(np.isfinite(scores), scores, -np.inf)))
+    if evidence is None or level is None:
+        return int(np.argmax(np.where(np.isfinite(scores), scores, -np.inf)))
+    ranked = np.flatnonzero(np.isfinite(scores))
+    best = int(ranked[0])
+    for run in ranked[1:]:
+        if significantly_better(evidence[run], evidence[best], level):
+            best = int(run)
+    return best
 
 
 def fewest_dropped(dropped, fill_step) -> int:
@@ -639,7 +661,8 @@ def fewest_dropped(dropped, fill_step) -> int:
     return first_overflowed(dropped, dropped, -np.asarray(fill_step))
 
 
-def _stalled(objective, dropped, patience: int | None, fill_step=None) -> bool:
+def _stalled(objective, dropped, patience: int | None, fill_step=None, evidence=None,
+             level: float | None = None) -> bool:
     """Whether none of the last ``patience`` filter runs is the best so far by ``_best_run``'s
     rule (the first run never counts as best; a run whose map overflowed does not beat a
     lower fair one; a tie keeps the earlier run). objective (R,), dropped (R,), fill_step
@@ -650,7 +673,8 @@ def _stalled(objective, dropped, patience: int | None, fill_step=None) -> bool:
     Can first hold after patience + 2 runs."""
     if patience is None or _no_fair_run(objective, dropped):
         return False
-    return len(objective) - 1 - _best_run(objective, dropped, fill_step) >= patience
+    best = _best_run(objective, dropped, fill_step, evidence, level)
+    return len(objective) - 1 - best >= patience
 
 
 def _fit_warnings(last: _MStep | None, steps: int, radius_step: _MStep | None = None,
@@ -718,8 +742,9 @@ def _unranked_warning(objective, dropped, found: ScaleSearch | None, slots: int)
             "observations of one tree that fail to match with every noise tried)"]
 
 
-def _stalled_line(iteration: int, objective, dropped, patience: int, fill_step) -> str:
-    best = _best_run(objective, dropped, fill_step)  # a fair run: ``_stalled`` waits for one
+def _stalled_line(iteration: int, objective, dropped, patience: int, fill_step,
+                  evidence=None, level: float | None = None) -> str:
+    best = _best_run(objective, dropped, fill_step, evidence, level)  # a fair run (``_stalled``)
     return (f"calibration iteration {iteration}: log marginal likelihood {objective[-1]:.1f}; "
             f"none of the last {patience} runs beat iteration {best + 1}'s "
             f"{objective[best]:.1f}: EM stops (not converged)")
@@ -768,7 +793,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                      calibrate_gain: bool = False, smoother_iterations: int = 15,
                      merge_landmarks: bool = False, scale_search: bool = True,
                      scales=DEFAULT_SCALES, patience: int | None = 2,
-                     search_workers: int | None = None,
+                     search_workers: int | None = None, significance: float | None = 0.05,
                      progress=None) -> tuple[Params, CalibrationInfo]:
     """Estimate the filter's settings from one log, with no ground truth (module docstring).
 
@@ -837,6 +862,13 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         EM's own estimate. Costs at most 2 len(scales) - 1 more filter runs (one fewer when
         EM did not converge and no radius std was fitted: its best run is reused), fewer
         when a stage's score falls past its peak (``noise_scale.walk_stage``).
+      significance: one-sided level of the test by which a later EM run beats the best
+        before it (``score_comparison.significantly_better``: Diebold and Mariano's paired
+        t test of the runs' per-step log evidence, batch means over 20 blocks), for the
+        returned iterate and for ``patience``. None: the highest sum wins (the rule until
+        2026-12-08). A plain comparison of sums is decided by single steps on MRCLAM,
+        where one run scores -1e5 nats at a step another does not (docs/results.md,
+        mrclam). The scale search still compares sums.
       search_workers: candidates of the scale search run at once, each in its own thread
         (the same choice for every value; ``noise_scale.walk_stage``). None:
         ``noise_scale.default_workers()``, 2 on a CPU with two or more cores, where two
@@ -849,6 +881,9 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     """
     log = _checked_log(controls, observations, initial_pose, iterations, tol)
     _check_patience(patience)
+    if significance is not None and not 0.0 < significance < 1.0:
+        raise ValueError(f"calibrate_params needs significance in (0, 1) or None; got "
+                         f"{significance!r}")
     scales = check_scales("scales", scales)
     search_workers = check_workers(search_workers, "search_workers")
     motion_model = motion_model or config.motion_model
@@ -865,6 +900,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                                        np.zeros(0, np.int64))
     objective, dropped, costs, typical, evaluated, warnings = [], [], [], [], [], []
     runs, fill_steps = [], []  # each EM filter run's RunScore, and its fill step
+    evidence = []  # each EM filter run's per-step log evidence (T,)
     values = {}
     converged, stalled, last, m_steps = False, False, None, []
     controls = jnp.asarray(log.controls, dtype)
@@ -889,11 +925,13 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         objective.append(runs[-1].log_likelihood)
         dropped.append(runs[-1].dropped_births)
         fill_steps.append(runs[-1].fill_step)
+        evidence.append(np.asarray(trace.log_evidence, np.float64))
         evaluated.append(params)
-        if _stalled(objective, dropped, patience, fill_steps):
+        if _stalled(objective, dropped, patience, fill_steps, evidence, significance):
             stalled = True
             if progress is not None:
-                progress(_stalled_line(done, objective, dropped, patience, fill_steps))
+                progress(_stalled_line(done, objective, dropped, patience, fill_steps,
+                                       evidence, significance))
             break
         step = _m_step(config, params, log, odometry,
                        best_history(trace.lineage, final.log_weight), done, calibrate_sensor,
@@ -925,7 +963,7 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
             break
     chosen, known, source = "", None, last  # source: the M-step behind ``params``
     if not converged:
-        best = _best_run(objective, dropped, fill_steps)
+        best = _best_run(objective, dropped, fill_steps, evidence, significance)
         source = m_steps[best - 1] if 1 <= best <= len(m_steps) else None
         params, known = evaluated[best], runs[best]
         values = {name: _plain(getattr(params, name)) for name in values}
@@ -936,7 +974,10 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
                f"births, {dropped[best]}, its map full from step {fill_steps[best]}"
                if _no_fair_run(objective, dropped) else
                f"the highest log marginal likelihood of the {len(evaluated)} filter "
-               f"runs{among}")
+               f"runs{among}" if significance is None else
+               f"the last of the {len(evaluated)} filter runs{among} whose log marginal "
+               f"likelihood beat the best before it at the {significance:g} level of a "
+               f"one-sided t test over blocks of steps")
         chosen = f"; returned iteration {best + 1}'s settings ({why})"
     behind = _behind(m_steps, source)
     fitted_radius = (source.radius if source is not None else None) or {}
@@ -980,9 +1021,12 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
     if converged:
         verdict = "converged"
     elif stalled:
+        best_run = ("the best run before them: the highest log marginal likelihood among "
+                    "the runs that kept every birth" if significance is None else
+                    "the best run before them among the runs that kept every birth, by a "
+                    f"one-sided t test of the log evidence at the {significance:g} level")
         verdict = (f"not converged: stopped after {done} iterations (none of the last "
-                   f"{patience} runs beat the best run before them: the highest log "
-                   "marginal likelihood among the runs that kept every birth)")
+                   f"{patience} runs beat {best_run})")
     else:
         verdict = (f"not converged after {done} iterations (the last moved a noise std or "
                    f"an odometry gain by more than {tol:.0%})")

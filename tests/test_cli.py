@@ -617,8 +617,10 @@ def test_calibration_print_gives_the_radius_std_with_its_interval(capsys):
 def test_em_patience_option_reaches_the_calibration():
     """``--em-patience N`` is calibrate_params' patience, 0 is None (no early stop);
     ``--fit-gain`` also fits the odometry's gains (calibrate_gain=True);
-    ``--search-workers N`` its search_workers (absent: None, the default); a negative
-    patience or a worker count below 1 is refused with a message naming the flag."""
+    ``--search-workers N`` its search_workers (absent: None, the default);
+    ``--em-significance LEVEL`` its significance (0: None, the plain sums); a negative
+    patience, a worker count below 1 or a level outside [0, 1) is refused with a message
+    naming the flag."""
     import argparse
 
     from jaxslam.cli.common import UsageError
@@ -630,7 +632,12 @@ def test_em_patience_option_reaches_the_calibration():
         assert _calibration_options(parser.parse_args(command))["patience"] == 2
         given = parser.parse_args(command + ["--em-patience", "3"])
         assert _calibration_options(given) == {"scale_search": True, "calibrate_gain": False,
-                                               "patience": 3, "search_workers": None}
+                                               "patience": 3, "search_workers": None,
+                                               "significance": 0.05}
+        assert _calibration_options(parser.parse_args(command + ["--em-significance", "0.01"]))[
+            "significance"] == 0.01
+        assert _calibration_options(parser.parse_args(command + ["--em-significance", "0"]))[
+            "significance"] is None
         assert _calibration_options(parser.parse_args(command + ["--fit-gain"]))[
             "calibrate_gain"]
         assert _calibration_options(parser.parse_args(command + ["--em-patience", "0"]))[
@@ -641,6 +648,9 @@ def test_em_patience_option_reaches_the_calibration():
         _calibration_options(argparse.Namespace(em_patience=-1, no_scale_search=False))
     with pytest.raises(UsageError, match="--search-workers must be a positive number"):
         _calibration_options(argparse.Namespace(em_patience=2, search_workers=0))
+    for bad in (-0.1, 1.0, 1.5):
+        with pytest.raises(UsageError, match="--em-significance must be a level in"):
+            _calibration_options(argparse.Namespace(em_patience=2, em_significance=bad))
 
 
 def test_run_and_calibrate_with_the_commands_lag(tmp_path, monkeypatch, capsys):

@@ -996,6 +996,74 @@ def test_dropped_births_recorded_when_the_map_overflows():
     assert info.fill_steps.tolist() == [first]
 
 
+def _evidence_runs(gains, spike_run=None, steps=400, seed=0):
+    """Per-step log evidence of len(gains) runs on one log: a shared stretch plus each run's
+    own noise (std 0.5 a step) and its gain per step; ``spike_run`` also loses 1e5 nats at
+    one step. Returns (objective (R,) the sums, evidence R arrays (T,))."""
+    rng = np.random.default_rng(seed)
+    shared = rng.normal(-3.0, 1.0, steps)
+    evidence = [shared + gain + rng.normal(0.0, 0.5, steps) for gain in gains]
+    if spike_run is not None:
+        evidence[spike_run][steps // 3] -= 1e5
+    return [float(np.sum(run)) for run in evidence], evidence
+
+
+@pytest.mark.parametrize("gains, spike_run, expected_plain, expected_tested", [
+    # Runs 2 and 3 gain 0.2 nats a step each over the one before: each beats the best.
+    ((0.0, 0.0, 0.2, 0.4), None, 3, 3),
+    # Run 1 met a -1e5 step; run 2 scores 1e5 higher by that step alone, and run 3 gains
+    # nothing over run 2: the plain sums pick run 2 (or 3 by chance), the test keeps run 1,
+    # as one step does not make a significant gain.
+    ((0.0, 0.0, 0.0, 0.0), 1, None, 1),
+    # Run 3 met the spike: the plain sums and the test both keep a spike-free run.
+    ((0.0, 0.0, 0.0, 0.0), 3, None, 1),
+    # A gain too small for the runs' noise (0.01 nats a step against std 0.7): run 1 stays.
+    ((0.0, 0.0, 0.01, 0.0), None, None, 1),
+])
+def test_best_run_with_the_test_needs_a_significant_gain(gains, spike_run, expected_plain,
+                                                         expected_tested):
+    objective, evidence = _evidence_runs(gains, spike_run)
+    objective[0] = 1e9  # the starting run never wins, with or without the test
+    dropped = [0] * len(gains)
+    if expected_plain is not None:
+        assert sc._best_run(objective, dropped) == expected_plain
+    assert sc._best_run(objective, dropped, None, evidence, 0.05) == expected_tested
+    # Without a level (or without the evidence) the plain rule stands.
+    assert sc._best_run(objective, dropped, None, evidence, None) == sc._best_run(objective,
+                                                                                  dropped)
+
+
+def test_best_run_with_the_test_skips_overflowed_and_broken_runs():
+    """Runs whose map overflowed or whose score is not finite are not ranked by the test
+    either: here run 2 gains most but overflowed, run 3 is NaN, so run 4's significant gain
+    over run 1 decides; and when every run after the first overflowed the fewest-dropped
+    rule stands."""
+    objective, evidence = _evidence_runs((0.0, 0.0, 0.5, 0.3, 0.3))
+    objective[3] = float("nan")
+    assert sc._best_run(objective, [0, 0, 5, 0, 0], None, evidence, 0.05) == 4
+    assert sc._best_run(objective, [0, 7, 5, 6, 9], [100, 10, 20, 30, 5], evidence,
+                        0.05) == 2
+
+
+def test_stalled_with_the_test_counts_runs_without_a_significant_gain():
+    """Run 2 beats run 1 by a spike step only: with the test, runs 2 and 3 are not better
+    than run 1, so patience 2 stops EM; the plain sums see run 2 as the best and go on."""
+    objective, evidence = _evidence_runs((0.0, 0.0, 0.0, 0.0), spike_run=1)
+    dropped = [0, 0, 0, 0]
+    assert sc._stalled(objective, dropped, 2, None, evidence, 0.05) is True
+    assert sc._stalled(objective, dropped, 2) is False
+
+
+def test_calibrate_params_checks_the_significance():
+    controls = jnp.zeros((30, 3))
+    obs = make_observations(jnp.zeros((30, CONFIG.max_obs, 2)),
+                            jnp.zeros((30, CONFIG.max_obs), bool))
+    for bad in (0.0, 1.0, -0.1, 2.0):
+        with pytest.raises(ValueError, match="significance in \\(0, 1\\) or None"):
+            sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs,
+                                significance=bad)
+
+
 @pytest.mark.parametrize("objective, dropped, patience, expected", [
     ([5.0, 9.0, 7.0], [0, 0, 0], 2, False),              # one run below the best: go on
     ([5.0, 9.0, 7.0, 8.0], [0, 0, 0, 0], 2, True),       # two in a row below run 1

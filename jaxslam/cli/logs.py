@@ -342,8 +342,8 @@ def _delay_note(delay) -> str:
 
 def _calibration_options(args) -> dict:
     """``calibrate_params`` keywords from the command line (``--no-scale-search``,
-    ``--fit-gain``, ``--em-patience N``, 0 for none; ``--search-workers N``, absent for the
-    default)."""
+    ``--fit-gain``, ``--em-patience N``, 0 for none; ``--em-significance LEVEL``, 0 for
+    none; ``--search-workers N``, absent for the default)."""
     patience = getattr(args, "em_patience", 2)
     if patience < 0:
         raise UsageError(f"--em-patience must be 0 (no early stop) or a positive number "
@@ -352,9 +352,14 @@ def _calibration_options(args) -> dict:
     if workers is not None and workers < 1:
         raise UsageError(f"--search-workers must be a positive number of filter runs at "
                          f"once; got {workers}")
+    significance = getattr(args, "em_significance", 0.05)
+    if not 0.0 <= significance < 1.0:
+        raise UsageError(f"--em-significance must be a level in (0, 1), or 0 for the highest "
+                         f"summed likelihood; got {significance}")
     return {"scale_search": not getattr(args, "no_scale_search", False),
             "calibrate_gain": getattr(args, "fit_gain", False),
-            "patience": patience or None, "search_workers": workers}
+            "patience": patience or None, "search_workers": workers,
+            "significance": significance or None}
 
 
 def cmd_calibrate(args) -> int:
