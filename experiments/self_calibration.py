@@ -351,7 +351,15 @@ def main(argv=None):
     parser.add_argument("--offline", action="store_true",
                         help="also score the offline estimate (smoothed, missed loops closed: "
                         "offline_error) of both filters; results/self_calibration/offline.md")
+    parser.add_argument("--em-significance", type=float, default=0.05, metavar="LEVEL",
+                        help="calibrate_params' significance: the level of the t test by "
+                             "which a later EM run beats the best before it; 0: the highest "
+                             "summed likelihood (default: 0.05, as in the library)")
     args = parser.parse_args(argv)
+    if not 0.0 <= args.em_significance < 1.0:
+        parser.error(f"--em-significance {args.em_significance}: expected a level in "
+                     "(0, 1), or 0")
+    significance = args.em_significance or None
     if min(args.odometry_gain) <= 0.0:
         parser.error(f"--odometry-gain {args.odometry_gain}: expected two gains > 0")
     config = FilterConfig(num_particles=args.particles, max_landmarks=96, max_obs=12,
@@ -371,7 +379,8 @@ def main(argv=None):
         start = time.perf_counter()
         calibrated, info = calibrate_params(config, key_filter, controls, obs, truth[0],
                                             starting_params(config),
-                                            calibrate_gain=args.fit_gain)
+                                            calibrate_gain=args.fit_gain,
+                                            significance=significance)
         seconds = time.perf_counter() - start
         cal_error, cal_map, _, _, cal_offline = score(
             config, key_filter, calibrated, controls, obs, truth, trees, args.offline)
@@ -385,7 +394,8 @@ def main(argv=None):
             found = bootstrap_intervals(config, key_filter, controls, obs, truth[0],
                                         starting_params(config), calibrated, info,
                                         replicates=args.bootstrap,
-                                        calibrate_gain=args.fit_gain)
+                                        calibrate_gain=args.fit_gain,
+                                        significance=significance)
             booted.append(bootstrap_recovery(truth_params, found, true_moves, obs))
             print(f"   bootstrap ({args.bootstrap} replicates, "
                   f"{time.perf_counter() - start:.0f} s): true typical std inside the interval:",

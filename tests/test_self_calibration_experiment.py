@@ -247,3 +247,31 @@ def test_logs_read_with_a_gain():
     readings = np.asarray(read_with_gain(moves, (0.8, 0.5)), np.float64)
     np.testing.assert_allclose(readings * [0.5, 0.8, 0.5], moves, rtol=1e-6)
     assert read_with_gain(moves, (1.0, 1.0)) is moves
+
+
+def test_em_significance_reaches_the_calibration(monkeypatch, capsys):
+    """``--em-significance LEVEL`` is calibrate_params' significance (default 0.05, the
+    library's; 0: None, the plain sums); a level outside [0, 1) is refused by name. The log's
+    true-noise run is replaced by a stub."""
+    import pytest
+
+    import experiments.self_calibration as experiment
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def calibrate_params(*args, **options):
+        seen.append(options["significance"])
+        raise Stop
+
+    monkeypatch.setattr(experiment, "score", lambda *args: (0.0, 0, 0, None, 0.0))
+    monkeypatch.setattr(experiment, "calibrate_params", calibrate_params)
+    for extra in ([], ["--em-significance", "0"], ["--em-significance", "0.01"]):
+        with pytest.raises(Stop):
+            experiment.main(["--runs", "1", *extra])
+    assert seen == [0.05, None, 0.01]
+    with pytest.raises(SystemExit):
+        experiment.main(["--runs", "1", "--em-significance", "1.5"])
+    assert "--em-significance 1.5: expected a level in (0, 1), or 0" in capsys.readouterr().err
