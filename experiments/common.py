@@ -21,6 +21,27 @@ CONFIGS = ROOT / "experiments" / "configs"
 sys.path.insert(0, str(ROOT))
 
 
+def add_em_significance(parser) -> None:
+    """``--em-significance LEVEL``: ``calibrate_params``' significance (0: None)."""
+    parser.add_argument("--em-significance", type=float, default=0.0, metavar="LEVEL",
+                        help="calibrate_params' significance: a later EM run beats the best "
+                             "before it only by a one-sided t test of the per-step log "
+                             "evidence at this level; 0: the highest summed likelihood "
+                             "(default: 0, as in the library)")
+
+
+def em_significance(parser, args, calibrates: bool = True) -> float | None:
+    """The checked ``--em-significance`` as ``calibrate_params`` takes it (None for 0);
+    ``parser.error`` for a level outside [0, 1), or a level where nothing is calibrated."""
+    level = args.em_significance
+    if not 0.0 <= level < 1.0:
+        parser.error(f"--em-significance {level}: expected a level in (0, 1), or 0")
+    if level and not calibrates:
+        parser.error("--em-significance ranks the calibration's EM runs: not without a "
+                     "calibration (--no-calibrate)")
+    return level or None
+
+
 def parse_args(description: str, default_runs: int):
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--runs", type=int, default=default_runs,

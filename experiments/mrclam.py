@@ -8,12 +8,15 @@ scores (ATE of the online mean path and of the smoothed one, against dead reckon
 
     python experiments/mrclam.py [--robots 1 2 3 4 5] [--particles 100] [--close-loops]
                                  [--filter-keys N] [--fit-gain] [--em-iterations N]
+                                 [--em-significance LEVEL]
                                  [--proposal observation|mixture] [--mixture-ratio PHI]
 
 ``--filter-keys N`` runs the calibrated settings with N more filter keys and prints, for each,
 the ratio of dead reckoning's ATE to the online path's and to the smoothed best history's.
 ``--fit-gain`` also fits the odometry's gains (``calibrate_params(calibrate_gain=True)``).
-``--em-iterations N`` caps EM's filter runs (the library's 5 by default); ``--proposal
+``--em-iterations N`` caps EM's filter runs (the library's 5 by default);
+``--em-significance LEVEL`` ranks EM's runs by the t test of ``calibrate_params``'
+``significance``; ``--proposal
 mixture --mixture-ratio PHI`` runs the calibration and the filter with the mixture proposal
 (a share 1 - PHI of the particles drawn from the motion model). Both are diagnostics of the
 calibration on these logs, not settings chosen for them.
@@ -72,6 +75,7 @@ from jaxslam.filter import run_filter
 from jaxslam.self_calibration import calibrate_params, starting_params
 from jaxslam.types import FilterConfig, default_params
 
+from experiments.common import add_em_significance, em_significance  # noqa: E402
 from experiments.mrclam_diagnostics import filter_variant  # noqa: E402
 
 DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "mrclam1"
@@ -113,20 +117,22 @@ def main(argv=None):
                              "the calibration and the key-0 run keep --particles, so this "
                              "measures what a larger compute budget gives the same settings")
     parser.add_argument("--proposal", choices=("observation", "mixture"), default="observation",
-                        help="the filter's proposal in the calibration and the runs "
-                             "(default: observation, as in the library); 'mixture' draws a "
-                             "share 1 - phi of the particles from the motion model")
+                        help="the filter's proposal in the calibration and the runs; "
+                             "'mixture' draws a share 1 - phi of the particles from the "
+                             "motion model (default: observation, as in the library)")
     parser.add_argument("--mixture-ratio", type=float, default=None,
                         help="phi of --proposal mixture, the probability of an observation "
                              "draw (default: the library's Params.mixture_ratio)")
     parser.add_argument("--em-iterations", type=int, default=None,
                         help="EM's filter runs in the calibration (calibrate_params' "
-                             "iterations; default: the library's 5); 2 returns the settings "
-                             "of EM's first M-step")
+                             "iterations; 2 returns the settings of EM's first M-step) "
+                             "(default: the library's 5)")
+    add_em_significance(parser)
     args = parser.parse_args(argv)
     if args.em_iterations is not None and (args.em_iterations < 1 or args.no_calibrate):
         parser.error(f"--em-iterations {args.em_iterations}: expected 1 or more, and a "
                      "calibration (not with --no-calibrate)")
+    args.em_significance = em_significance(parser, args, not args.no_calibrate)
     if args.mixture_ratio is not None and (args.proposal != "mixture"
                                            or not 0.0 <= args.mixture_ratio <= 1.0):
         parser.error(f"--mixture-ratio {args.mixture_ratio}: expected a probability in [0, 1] "
@@ -287,11 +293,14 @@ def keys_summary(ratios, kept, num_keys: int, particles: int, smoothed=()) -> st
 
 
 def calibration_options(args) -> dict:
-    """``calibrate_params`` keywords from the options: ``calibrate_gain`` always, and
-    ``iterations`` when ``--em-iterations`` is given."""
+    """``calibrate_params`` keywords from the options: ``calibrate_gain`` always,
+    ``iterations`` when ``--em-iterations`` is given and ``significance`` when
+    ``--em-significance`` is given (checked: a level, or None for 0)."""
     options = {"calibrate_gain": args.fit_gain}
     if getattr(args, "em_iterations", None) is not None:
         options["iterations"] = args.em_iterations
+    if getattr(args, "em_significance", None):
+        options["significance"] = args.em_significance
     return options
 
 

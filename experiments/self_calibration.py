@@ -44,6 +44,7 @@ import numpy as np
 # (an experiment started from a git worktree of an older commit).
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
+from experiments.common import add_em_significance, em_significance
 from jaxslam import lineage, metrics
 from jaxslam.calibration_bootstrap import bootstrap_intervals, burst_rms_factor
 from jaxslam.calibration_residuals import NOISE_GROUPS, typical_stds
@@ -351,15 +352,9 @@ def main(argv=None):
     parser.add_argument("--offline", action="store_true",
                         help="also score the offline estimate (smoothed, missed loops closed: "
                         "offline_error) of both filters; results/self_calibration/offline.md")
-    parser.add_argument("--em-significance", type=float, default=0.05, metavar="LEVEL",
-                        help="calibrate_params' significance: the level of the t test by "
-                             "which a later EM run beats the best before it; 0: the highest "
-                             "summed likelihood (default: 0.05, as in the library)")
+    add_em_significance(parser)
     args = parser.parse_args(argv)
-    if not 0.0 <= args.em_significance < 1.0:
-        parser.error(f"--em-significance {args.em_significance}: expected a level in "
-                     "(0, 1), or 0")
-    significance = args.em_significance or None
+    significance = em_significance(parser, args)
     if min(args.odometry_gain) <= 0.0:
         parser.error(f"--odometry-gain {args.odometry_gain}: expected two gains > 0")
     config = FilterConfig(num_particles=args.particles, max_landmarks=96, max_obs=12,

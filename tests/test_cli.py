@@ -618,7 +618,7 @@ def test_em_patience_option_reaches_the_calibration():
     """``--em-patience N`` is calibrate_params' patience, 0 is None (no early stop);
     ``--fit-gain`` also fits the odometry's gains (calibrate_gain=True);
     ``--search-workers N`` its search_workers (absent: None, the default);
-    ``--em-significance LEVEL`` its significance (0: None, the plain sums); a negative
+    ``--em-significance LEVEL`` its significance (default and 0: None, the plain sums); a negative
     patience, a worker count below 1 or a level outside [0, 1) is refused with a message
     naming the flag."""
     import argparse
@@ -633,9 +633,9 @@ def test_em_patience_option_reaches_the_calibration():
         given = parser.parse_args(command + ["--em-patience", "3"])
         assert _calibration_options(given) == {"scale_search": True, "calibrate_gain": False,
                                                "patience": 3, "search_workers": None,
-                                               "significance": 0.05}
-        assert _calibration_options(parser.parse_args(command + ["--em-significance", "0.01"]))[
-            "significance"] == 0.01
+                                               "significance": None}
+        assert _calibration_options(parser.parse_args(command + ["--em-significance", "0.05"]))[
+            "significance"] == 0.05
         assert _calibration_options(parser.parse_args(command + ["--em-significance", "0"]))[
             "significance"] is None
         assert _calibration_options(parser.parse_args(command + ["--fit-gain"]))[

@@ -151,11 +151,22 @@ def test_fit_gain_reaches_the_calibration(monkeypatch):
     monkeypatch.setattr(experiment, "mrclam_steps", lambda raw, max_obs: None)
     monkeypatch.setattr(experiment, "mrclam_log", lambda raw, steps, **kw: _log(5))
     monkeypatch.setattr(experiment.pipeline, "filter_log", filter_log)
-    for extra in ([], ["--fit-gain"], ["--em-iterations", "2"]):
+    for extra in ([], ["--fit-gain"], ["--em-iterations", "2"], ["--em-significance", "0.05"]):
         with pytest.raises(Stop):
             experiment.main(["--robots", "1", *extra])
     assert seen == [{"calibrate_gain": False}, {"calibrate_gain": True},
-                    {"calibrate_gain": False, "iterations": 2}]
+                    {"calibrate_gain": False, "iterations": 2},
+                    {"calibrate_gain": False, "significance": 0.05}]
+
+
+def test_em_significance_is_refused_outside_0_1_or_without_a_calibration(capsys):
+    for extra, message in ((["--em-significance", "1.0"], "expected a level in (0, 1), or 0"),
+                           (["--em-significance", "-0.5"], "expected a level in (0, 1), or 0"),
+                           (["--em-significance", "0.05", "--no-calibrate", "--command-delay",
+                             "0"], "not without a calibration (--no-calibrate)")):
+        with pytest.raises(SystemExit):
+            experiment.main(["--robots", "1", "--data", "/nonexistent", *extra])
+        assert message in capsys.readouterr().err
 
 
 def test_em_iterations_is_refused_below_one_or_without_a_calibration(capsys):

@@ -1008,29 +1008,28 @@ def _evidence_runs(gains, spike_run=None, steps=400, seed=0):
     return [float(np.sum(run)) for run in evidence], evidence
 
 
-@pytest.mark.parametrize("gains, spike_run, expected_plain, expected_tested", [
+@pytest.mark.parametrize("gains, spike_run, expected_tested", [
     # Runs 2 and 3 gain 0.2 nats a step each over the one before: each beats the best.
-    ((0.0, 0.0, 0.2, 0.4), None, 3, 3),
+    ((0.0, 0.0, 0.2, 0.4), None, 3),
     # Run 1 met a -1e5 step; run 2 scores 1e5 higher by that step alone, and run 3 gains
-    # nothing over run 2: the plain sums pick run 2 (or 3 by chance), the test keeps run 1,
-    # as one step does not make a significant gain.
-    ((0.0, 0.0, 0.0, 0.0), 1, None, 1),
-    # Run 3 met the spike: the plain sums and the test both keep a spike-free run.
-    ((0.0, 0.0, 0.0, 0.0), 3, None, 1),
+    # nothing over run 2: the plain sums pick run 2 or 3, the test keeps run 1, as one step
+    # does not make a significant gain.
+    ((0.0, 0.0, 0.0, 0.0), 1, 1),
+    # Run 3 met the spike: the test keeps the first ranked run (no significant gain after).
+    ((0.0, 0.0, 0.0, 0.0), 3, 1),
     # A gain too small for the runs' noise (0.01 nats a step against std 0.7): run 1 stays.
-    ((0.0, 0.0, 0.01, 0.0), None, None, 1),
+    ((0.0, 0.0, 0.01, 0.0), None, 1),
 ])
-def test_best_run_with_the_test_needs_a_significant_gain(gains, spike_run, expected_plain,
-                                                         expected_tested):
+def test_best_run_with_the_test_needs_a_significant_gain(gains, spike_run, expected_tested):
     objective, evidence = _evidence_runs(gains, spike_run)
     objective[0] = 1e9  # the starting run never wins, with or without the test
     dropped = [0] * len(gains)
-    if expected_plain is not None:
-        assert sc._best_run(objective, dropped) == expected_plain
+    plain = 1 + int(np.argmax(objective[1:]))  # the highest sum after the first run
+    assert spike_run is None or plain != spike_run
+    assert sc._best_run(objective, dropped) == plain
     assert sc._best_run(objective, dropped, None, evidence, 0.05) == expected_tested
-    # Without a level (or without the evidence) the plain rule stands.
-    assert sc._best_run(objective, dropped, None, evidence, None) == sc._best_run(objective,
-                                                                                  dropped)
+    # Without a level the plain rule stands, evidence or not.
+    assert sc._best_run(objective, dropped, None, evidence, None) == plain
 
 
 def test_best_run_with_the_test_skips_overflowed_and_broken_runs():
@@ -1052,6 +1051,47 @@ def test_stalled_with_the_test_counts_runs_without_a_significant_gain():
     dropped = [0, 0, 0, 0]
     assert sc._stalled(objective, dropped, 2, None, evidence, 0.05) is True
     assert sc._stalled(objective, dropped, 2) is False
+
+
+def test_em_with_the_test_returns_the_run_the_sums_would_not(monkeypatch):
+    """EM's filter runs scripted (their per-step log evidence replaced on the 200-step
+    log): run 2 is run 1 plus one step 1000 nats higher, run 3 is run 1 less 0.01 nats a
+    step. The plain sums return run 2's settings (iteration 3's), the highest sum; with the
+    test no later run beats run 1 (iteration 2's settings), and the verdict and the stop
+    line say why."""
+    from jaxslam import filter as filter_module
+
+    rng = np.random.default_rng(5)
+    base = rng.normal(-2.0, 1.0, 200)
+    spiked = base.copy()
+    spiked[7] += 1000.0
+    scripted_runs = [base - 50.0, base, spiked, base - 0.01]
+
+    def scripted(runs):
+        queue = iter(runs)
+
+        def scored_run(*args, **kwargs):
+            final, trace = filter_module.run_filter(*args, **kwargs)
+            evidence = jnp.asarray(next(queue), trace.log_evidence.dtype)
+            return final, trace._replace(log_evidence=evidence)
+        return scored_run
+
+    controls, obs, poses = _log()
+    options = dict(iterations=4, tol=1e-9, scale_search=False, patience=None)
+    monkeypatch.setattr(sc, "run_filter", scripted(scripted_runs))
+    _, plain = sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0],
+                                   **options)
+    monkeypatch.setattr(sc, "run_filter", scripted(scripted_runs))
+    _, tested = sc.calibrate_params(CONFIG, jax.random.PRNGKey(0), controls, obs, poses[0],
+                                    significance=0.05, **options)
+    assert "returned iteration 3's settings (the highest log marginal likelihood" in (
+        plain.verdict)
+    assert "returned iteration 2's settings (of the 4 filter runs, the first a likelihood " \
+           "ranks or a later one whose per-step log evidence beat the best before it by a " \
+           "one-sided t test at the 0.05 level)" in tested.verdict
+    line = sc._stalled_line(4, [float(np.sum(r)) for r in scripted_runs], [0] * 4, 2, None,
+                            scripted_runs, 0.05)
+    assert "beat iteration 2's" in line and "by the t test at the 0.05 level: EM stops" in line
 
 
 def test_calibrate_params_checks_the_significance():

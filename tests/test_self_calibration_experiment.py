@@ -250,8 +250,8 @@ def test_logs_read_with_a_gain():
 
 
 def test_em_significance_reaches_the_calibration(monkeypatch, capsys):
-    """``--em-significance LEVEL`` is calibrate_params' significance (default 0.05, the
-    library's; 0: None, the plain sums); a level outside [0, 1) is refused by name. The log's
+    """``--em-significance LEVEL`` is calibrate_params' significance (default 0: None, the
+    plain sums, as in the library); a level outside [0, 1) is refused by name. The log's
     true-noise run is replaced by a stub."""
     import pytest
 
@@ -268,10 +268,10 @@ def test_em_significance_reaches_the_calibration(monkeypatch, capsys):
 
     monkeypatch.setattr(experiment, "score", lambda *args: (0.0, 0, 0, None, 0.0))
     monkeypatch.setattr(experiment, "calibrate_params", calibrate_params)
-    for extra in ([], ["--em-significance", "0"], ["--em-significance", "0.01"]):
+    for extra in ([], ["--em-significance", "0.05"], ["--em-significance", "0"]):
         with pytest.raises(Stop):
             experiment.main(["--runs", "1", *extra])
-    assert seen == [0.05, None, 0.01]
+    assert seen == [None, 0.05, None]
     with pytest.raises(SystemExit):
         experiment.main(["--runs", "1", "--em-significance", "1.5"])
     assert "--em-significance 1.5: expected a level in (0, 1), or 0" in capsys.readouterr().err

@@ -352,7 +352,7 @@ def _calibration_options(args) -> dict:
     if workers is not None and workers < 1:
         raise UsageError(f"--search-workers must be a positive number of filter runs at "
                          f"once; got {workers}")
-    significance = getattr(args, "em_significance", 0.05)
+    significance = getattr(args, "em_significance", 0.0)
     if not 0.0 <= significance < 1.0:
         raise UsageError(f"--em-significance must be a level in (0, 1), or 0 for the highest "
                          f"summed likelihood; got {significance}")

@@ -148,11 +148,12 @@ def _add_no_scale_search(parser, prefix: str = "") -> None:
                              "have not beaten the best log marginal likelihood before them, "
                              "and keep that best run's settings; 0: run until the noise stops "
                              "moving or 5 iterations (default: 2)")
-    parser.add_argument("--em-significance", type=float, default=0.05, metavar="LEVEL",
+    parser.add_argument("--em-significance", type=float, default=0.0, metavar="LEVEL",
                         help=f"{prefix}a later EM run replaces the best before it only when "
                              "its per-step log evidence is higher by a one-sided t test at "
-                             "this level (over blocks of steps: one odd step does not "
-                             "decide); 0: the highest summed likelihood wins (default: 0.05)")
+                             "this level, e.g. 0.05 (over blocks of steps: one odd step does "
+                             "not decide; measured mixed: docs/cli.md); 0: the highest "
+                             "summed likelihood wins (default: 0)")
     parser.add_argument("--search-workers", type=int, default=None, metavar="N",
                         help=f"{prefix}filter runs of the noise-scale search run at once, each "
                              "in its own thread; the same choice for every N, only the time "
