@@ -603,8 +603,8 @@ def _stated_errors(m_steps: list, source, steps: int) -> tuple[dict, dict, bool 
 def _best_run(objective, dropped, fill_step=None, evidence=None,
               level: float | None = None) -> int:
     """Index of the filter run with the highest log marginal likelihood; with ``evidence``
-    and ``level``, of the last run whose likelihood was significantly higher than the best
-    before it.
+    and ``level``, of the first run a likelihood ranks or the last one whose per-step log
+    evidence beat the best before it by the t test.
 
     EM raises the marginal likelihood while the E-step's association holds; when it did not
     converge, the settings whose own filter run scored best are returned. The first run used
