@@ -16,10 +16,10 @@ the ratio of dead reckoning's ATE to the online path's and to the smoothed best 
 ``--fit-gain`` also fits the odometry's gains (``calibrate_params(calibrate_gain=True)``).
 ``--em-iterations N`` caps EM's filter runs (the library's 5 by default);
 ``--em-significance LEVEL`` ranks EM's runs by the t test of ``calibrate_params``'
-``significance``; ``--proposal
-mixture --mixture-ratio PHI`` runs the calibration and the filter with the mixture proposal
-(a share 1 - PHI of the particles drawn from the motion model). Both are diagnostics of the
-calibration on these logs, not settings chosen for them.
+``significance``; ``--proposal mixture --mixture-ratio PHI`` runs the calibration and the
+filter with the mixture proposal (a share 1 - PHI of the particles drawn from the motion
+model). All three are diagnostics of the calibration on these logs, not settings chosen
+for them.
 ``--seed 0 1 2 3`` calibrates each robot once per key; with ``--filter-keys`` the keys' ratios
 are then pooled per robot over the calibrations as well. A robot's result is a draw over
 both: a float-rounding change in the filter alone moved robot 1's median over six filter keys

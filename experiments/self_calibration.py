@@ -276,7 +276,8 @@ def _write_bootstrap(args, booted):
     _append_rows("bootstrap.md", header, "".join(
         f"| {args.seed} | {args.odometry_scale:g} | {args.sensor_scale:g} | {args.wobble:g} "
         f"| {_gain_cell(args)} | {args.bootstrap} | {group} | {len(booted)} | "
-        f"{np.median(lower[:, g]):.2f} | {np.median(upper[:, g]):.2f} | {np.median(truth[:, g]):.2f} | "
+        f"{np.median(lower[:, g]):.2f} | {np.median(upper[:, g]):.2f} | "
+        f"{np.median(truth[:, g]):.2f} | "
         f"{int(inside[:, g].sum())} of {len(booted)} |\n"
         for g, group in enumerate(NOISE_GROUPS)))
 
@@ -290,7 +291,8 @@ def offline_row(args, rows, offline) -> str:
 
     return (f"| {args.odometry_scale:g} | {args.sensor_scale:g} | {args.wobble:g} | "
             f"{_gain_cell(args)} | {len(rows)} | {np.median(rows[:, 0]):.2f} | "
-            f"{cell(rows[:, 1])} | {cell(offline[:, 0])} | {cell(rows[:, 2])} | {cell(offline[:, 1])} |\n")
+            f"{cell(rows[:, 1])} | {cell(offline[:, 0])} | {cell(rows[:, 2])} | "
+            f"{cell(offline[:, 1])} |\n")
 
 
 def _write_offline(args, rows, offline):

@@ -256,12 +256,12 @@ def motion_log_density(pose_prev, pose_next, control, params: Params,
     robot measured to stand still or creep forwards (farther than ``min_translation``) has
     rot1 and rot2 about pi from the measured ones and a log density about
     (pi / sigma_rot1)^2 / 2 + (pi / sigma_rot2)^2 / 2 lower (about 2e5 at 0.007 rad each):
-    practically zero. The sampler's Gaussian
-    translation does draw such poses, which this density then rejects. That is right for
-    robots that never reverse (no MRCLAM reading has a negative velocity), and measured
-    better than counting the backward decomposition too on MRCLAM robot 1 and simulated
-    logs (in-sample: the choice was made on them; on robots 2 and 5, held out, the two were
-    level and main ahead; docs/results.md, mrclam, twenty-seventh session). Its cost: in a step where every particle's proposal lies behind
+    practically zero. The sampler's Gaussian translation does draw such poses, which this
+    density then rejects. That is right for robots that never reverse (no MRCLAM reading has
+    a negative velocity), and measured better than counting the backward decomposition too
+    on MRCLAM robot 1 and simulated logs (in-sample: the choice was made on them; on robots
+    2 and 5, held out, the two were level and main ahead; docs/results.md, mrclam,
+    twenty-seventh session). Its cost: in a step where every particle's proposal lies behind
     (the observations pull the pose back), the filter's log evidence falls by about that
     much, and such single steps decide the log marginal likelihood of a run (MRCLAM robot 1:
     about -95,000 nats a step, a spread of about 290,000 nats over filter keys at one

@@ -874,8 +874,8 @@ def calibrate_params(config: FilterConfig, key, controls, observations: Observat
         particles all drawn behind it) and so decide the plain comparison. Measured mixed,
         so not the default (docs/results.md, mrclam, "Twenty-eighth session"): it kept
         EM's second run on all 20 MRCLAM calibrations; over four calibrations robot 1 went
-        from 2.20x to 3.18x dead reckoning / ATE, robot 2 stayed level, robots 3, 4 and 5
-        got worse, and the simulated sensor-10x row went from 0.477 to 0.841 m (seed 700).
+        from 2.20x to 3.18x dead reckoning / ATE (in-sample: its runs suggested the test),
+        robot 2 stayed level, robots 3, 4 and 5 got worse, and the simulated sensor-10x row went from 0.477 to 0.841 m (seed 700).
         A run with one outlying step stays the best against any gain smaller than about
         0.7 of that step (its block makes the standard error), and never becomes it.
       search_workers: candidates of the scale search run at once, each in its own thread
